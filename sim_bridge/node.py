@@ -1,0 +1,177 @@
+"""sim_bridge ROS 2 node: publishes the simulated A320 approach (thin wrapper, see simulator.py).
+
+Topics: ``generalized_state`` (sensor_msgs/JointState: name, velocity = q, effort = tau),
+``aero_wrench`` (geometry_msgs/WrenchStamped in frame ``wind``: the aerodynamic force vector
+[-drag, side, -lift] in wind axes, torque zero), ``/clock`` (rosgraph_msgs/Clock) if
+``publish_clock``.  All stamps are simulation time (monotonic across looped approaches).
+Parameters: see config/sim_bridge.yaml.  Changes accepted at run time take effect at the next
+approach (``loop``), except ``real_time_factor`` which applies at once.
+"""
+import math
+import sys
+
+import rclpy
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import WrenchStamped
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+
+from .config import DEFAULT_WIND_AMPLITUDE, DEFAULT_WIND_FREQUENCY, DEFAULT_WIND_PHASE, SimConfig
+from .simulator import ApproachSimulator
+
+PARAMETERS = {
+    'rate_hz': (60.0, 'publish rate in simulated time (Hz)'),
+    'real_time_factor': (1.0, 'simulated s per wall s; 0 = as fast as possible'),
+    'wind_amplitude': (list(DEFAULT_WIND_AMPLITUDE), 'wind amplitude north, east, down (m/s, |A| <= 25)'),
+    'wind_frequency': (list(DEFAULT_WIND_FREQUENCY), 'wind frequency north, east, down (Hz)'),
+    'wind_phase': (list(DEFAULT_WIND_PHASE), 'wind phase north, east, down (rad)'),
+    'coordinates': ('angle', "'angle' (alpha, beta, airspeed) or 'body' (u, v, w)"),
+    'loop': (True, 'restart the approach after touch-down; false = shut down'),
+    'aircraft': ('A320', 'JSBSim aircraft model name'),
+    'publish_clock': (False, 'publish simulation time on /clock'),
+    'max_sim_time_s': (0.0, 'stop after this much simulated time (s); 0 = unlimited'),
+}
+CONFIG_KEYS = ('rate_hz', 'wind_amplitude', 'wind_frequency', 'wind_phase', 'coordinates', 'aircraft')
+
+
+def _to_time(t: float) -> Time:
+    sec = math.floor(t)
+    return Time(sec=int(sec), nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
+
+
+def check_values(values: dict) -> SimConfig:
+    """Validate node parameter values; return the SimConfig or raise ValueError (clear message)."""
+    rtf = values['real_time_factor']
+    if not isinstance(rtf, (int, float)) or not math.isfinite(rtf) or rtf < 0:
+        raise ValueError(f'real_time_factor must be >= 0 (0 = as fast as possible), got {rtf!r}')
+    mst = values['max_sim_time_s']
+    if not isinstance(mst, (int, float)) or not math.isfinite(mst) or mst < 0:
+        raise ValueError(f'max_sim_time_s must be >= 0 (0 = unlimited), got {mst!r}')
+    return SimConfig(**{k: values[k] for k in CONFIG_KEYS}).validate()
+
+
+class SimBridgeNode(Node):
+    """Steps ApproachSimulator on a timer and publishes each sample."""
+
+    def __init__(self, **kwargs):
+        super().__init__('sim_bridge', **kwargs)
+        for name, (default, doc) in PARAMETERS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=doc))
+        self.cfg = check_values(self._values())        # raises ValueError on bad start values
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.state_pub = self.create_publisher(JointState, 'generalized_state', 10)
+        self.wrench_pub = self.create_publisher(WrenchStamped, 'aero_wrench', 10)
+        self.clock_pub = (self.create_publisher(Clock, '/clock', 10)
+                          if self.get_parameter('publish_clock').value else None)
+        self.done = False
+        self.published = 0
+        self._t_offset = 0.0
+        self.sim = ApproachSimulator(self.cfg)
+        self._publish(self.sim.reset())
+        self.timer = None
+        self._make_timer()
+        self.get_logger().info(
+            f'A320 approach trimmed at {self.sim.trim_speed_kts:.0f} kt '
+            f'({self.sim.trim_airspeed_mps:.1f} m/s), coordinates={self.cfg.coordinates}, '
+            f'rate={self.cfg.rate_hz} Hz, wind amplitude={self.cfg.wind_amplitude} m/s')
+
+    # ------------------------------------------------------------------ parameters
+    def _values(self, overrides=()):
+        values = {name: self.get_parameter(name).value for name in PARAMETERS}
+        values.update({p.name: p.value for p in overrides})
+        return values
+
+    def _on_set_parameters(self, params):
+        try:
+            unknown = [p.name for p in params if p.name not in PARAMETERS]
+            if unknown:
+                raise ValueError(f'unknown parameter(s) {unknown}')
+            for p in params:
+                if p.name == 'publish_clock' and p.value != self.get_parameter('publish_clock').value:
+                    raise ValueError('publish_clock can only be set at start-up')
+            check_values(self._values(params))
+        except (ValueError, TypeError) as exc:
+            self.get_logger().error(f'rejected parameter change: {exc}')
+            return SetParametersResult(successful=False, reason=str(exc))
+        if any(p.name == 'real_time_factor' for p in params):
+            rtf = [p.value for p in params if p.name == 'real_time_factor'][-1]
+            self._make_timer(rtf)
+        return SetParametersResult(successful=True)
+
+    def _make_timer(self, rtf=None):
+        if rtf is None:
+            rtf = self.get_parameter('real_time_factor').value
+        if self.timer is not None:
+            self.destroy_timer(self.timer)
+        period = 1.0 / (self.cfg.rate_hz * rtf) if rtf > 0 else 0.0
+        self.timer = self.create_timer(period, self._on_timer)
+
+    # ------------------------------------------------------------------ stepping
+    def _on_timer(self):
+        if self.done:
+            return
+        if self.sim.touched_down:
+            if not self.get_parameter('loop').value:
+                self._finish('touch-down')
+                return
+            self._t_offset += self.sim.t + 1.0 / self.cfg.rate_hz
+            self.cfg = check_values(self._values())
+            self.sim = ApproachSimulator(self.cfg)
+            self._publish(self.sim.reset())
+            return
+        s = self.sim.step()
+        self._publish(s)
+        limit = self.get_parameter('max_sim_time_s').value
+        if limit > 0 and self._t_offset + s.t >= limit - 1e-9:
+            self._finish(f'max_sim_time_s={limit}')
+
+    def _finish(self, why):
+        self.done = True
+        if self.timer is not None:
+            self.timer.cancel()
+        self.get_logger().info(f'approach finished ({why}) after {self.published} samples')
+
+    def _publish(self, s):
+        stamp = _to_time(self._t_offset + s.t)
+        js = JointState()
+        js.header.stamp = stamp
+        js.name = list(self.cfg.joint_names)
+        js.velocity = [float(v) for v in s.q]
+        js.effort = [float(v) for v in s.tau]
+        self.state_pub.publish(js)
+        w = WrenchStamped()
+        w.header.stamp = stamp
+        w.header.frame_id = 'wind'
+        w.wrench.force.x, w.wrench.force.y, w.wrench.force.z = (float(v) for v in s.force_wind)
+        self.wrench_pub.publish(w)
+        if self.clock_pub is not None:
+            self.clock_pub.publish(Clock(clock=stamp))
+        self.published += 1
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = SimBridgeNode()
+        while rclpy.ok() and not node.done:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except ValueError as exc:
+        print(f'[sim_bridge] error: invalid parameter: {exc}', file=sys.stderr)
+        code = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
