@@ -111,7 +111,8 @@ class SimConfig:
         if not 200 <= self.start_height_ft <= 5000:
             raise ValueError(f'start_height_ft must be in [200, 5000] ft, got {self.start_height_ft!r}')
         if not 0 <= self.flare_height_ft < self.start_height_ft / 2:
-            raise ValueError(f'flare_height_ft must be in [0, start_height_ft/2), got {self.flare_height_ft!r}')
+            raise ValueError('flare_height_ft must be in [0, start_height_ft/2), '
+                             f'got {self.flare_height_ft!r}')
         if not math.isfinite(self.max_time_s) or self.max_time_s <= 0:
             raise ValueError(f'max_time_s must be > 0 s, got {self.max_time_s!r}')
         return self

@@ -12,7 +12,7 @@ resistive force is ``tau = -F_wind = [drag, -side, lift]`` (DESIGN), and in body
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
