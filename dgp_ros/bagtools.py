@@ -310,8 +310,80 @@ def _storage_plugin(storage: str):
 # Recorder
 # --------------------------------------------------------------------------------------------
 
+class _WriterThread:
+    """Owns the rosbags ``Writer`` in one thread.
+
+    sqlite3 objects are bound to the thread that created them while subscription callbacks may
+    run on any executor thread; this also keeps disk I/O out of the DDS callbacks. Operations
+    are queued in order; errors are kept and raised (as :class:`BagError`) by :meth:`close`.
+    """
+
+    def __init__(self, path: Path, storage: str, custom: dict):
+        import queue
+        self.path = path
+        self.error: Optional[str] = None
+        self._q = queue.Queue()
+        ready = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(storage, custom, ready),
+                                        name='dgp_record_writer', daemon=True)
+        self._thread.start()
+        ready.wait()
+        if self.error:
+            self._thread.join()
+            raise BagError(self.error)
+
+    def _run(self, storage, custom, ready):
+        from rosbags.rosbag2 import Writer
+        try:
+            w = Writer(self.path, version=9, storage_plugin=_storage_plugin(storage))
+            w.open()
+            for k, v in custom.items():
+                w.set_custom_data(k, v)
+        except Exception as exc:
+            self.error = f'{self.path}: cannot create bag: {_one_line(exc)}'
+            ready.set()
+            return
+        ready.set()
+        conns = {}
+        while True:
+            op = self._q.get()
+            try:
+                if op[0] == 'add':
+                    _, topic, typ, msgdef, rihs, offered = op
+                    conns[topic] = w.add_connection(topic, typ, msgdef=msgdef, rihs01=rihs,
+                                                    serialization_format='cdr',
+                                                    offered_qos_profiles=offered)
+                elif op[0] == 'write':
+                    _, topic, t, data = op
+                    w.write(conns[topic], t, data)
+                elif op[0] == 'close':
+                    w.close()
+                    return
+            except Exception as exc:
+                if self.error is None:
+                    self.error = f'{self.path}: writing failed: {_one_line(exc)}'
+                if op[0] == 'close':
+                    return
+
+    def add_connection(self, topic, typ, msgdef, rihs, offered):
+        self._q.put(('add', topic, typ, msgdef, rihs, offered))
+
+    def write(self, topic, t_ns, data):
+        self._q.put(('write', topic, t_ns, data))
+
+    def close(self):
+        """Flush everything queued, close the bag (metadata.yaml); raise BagError on failure."""
+        if self._thread.is_alive():
+            self._q.put(('close',))
+            self._thread.join()
+        if self.error:
+            raise BagError(self.error)
+
+
 class Recorder:
-    """Record topics to a rosbag2 bag from inside an rclpy node (no extra threads).
+    """Record topics to a rosbag2 bag from inside an rclpy node.
+
+    Callbacks may run on any executor thread; the bag is written by one writer thread.
 
     ``topics``: mapping fully-qualified-or-relative topic name -> type (``None`` = take it from
     the graph). Call :meth:`close` (always) to write the metadata. ``done`` becomes True once
@@ -321,8 +393,6 @@ class Recorder:
     def __init__(self, node, path, topics, storage: str = 'sqlite3', max_messages: int = 0,
                  depth: int = 1000, reliability: str = 'auto', discovery_period: float = 0.1,
                  log: Optional[Callable[[str], None]] = None):
-        from rosbags.rosbag2 import Writer
-
         self.node = node
         self.path = Path(path)
         self.max_messages = int(max_messages or 0)
@@ -339,13 +409,7 @@ class Recorder:
             fq = node.resolve_topic_name(name)
             self._pending[fq] = normalize_type(typ) if typ else None
         self._subs = {}
-        self._conns = {}
-        self.writer = Writer(self.path, version=9, storage_plugin=_storage_plugin(storage))
-        try:
-            self.writer.open()
-        except Exception as exc:
-            raise BagError(f'{self.path}: cannot create bag: {_one_line(exc)}') from None
-        self.writer.set_custom_data('recorded_by', 'dgp_ros.bagtools')
+        self.writer = _WriterThread(self.path, storage, {'recorded_by': 'dgp_ros.bagtools'})
         self._timer = None
         self._discover()
         if self._pending:
@@ -391,10 +455,8 @@ class Recorder:
             pass
         msgdef, rihs = message_definition(typ, graph_hash if graph_hash.startswith('RIHS') else '')
         offered = [qos_to_rosbags(p.qos_profile) for p in pubs]
-        conn = self.writer.add_connection(topic, typ, msgdef=msgdef, rihs01=rihs or 'RIHS01_' +
-                                          '0' * 64, serialization_format='cdr',
-                                          offered_qos_profiles=offered)
-        self._conns[topic] = conn
+        # rosbags needs some hash; an all-zero one marks "unknown" (rosbag2 writes an empty one)
+        self.writer.add_connection(topic, typ, msgdef, rihs or 'RIHS01_' + '0' * 64, offered)
         self.counts[topic] = 0
         qos = adapted_qos([p.qos_profile for p in pubs], self.depth, self.reliability)
         self._subs[topic] = self.node.create_subscription(
@@ -407,7 +469,7 @@ class Recorder:
             if self._closed or self.done:
                 return
             t = self.node.get_clock().now().nanoseconds
-            self.writer.write(self._conns[topic], t, data)
+            self.writer.write(topic, t, data)
             self.count += 1
             self.counts[topic] += 1
             if self.max_messages and self.count >= self.max_messages:
