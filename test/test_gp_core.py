@@ -1,0 +1,266 @@
+"""Core D-GP library: exactness against the paper's dense formulation, gradients, updates, I/O."""
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from dgp_ros.gp import (ArdGP, DiagDGP, FullDGP, copositivity_margin, load_model, make_model,
+                        prior_mean_diag, se_ard)
+from dgp_ros.gp.models import _LmlObjective
+
+
+def _friction(Q):
+    D = np.array([[2.0, 0.3], [0.1, 1.0]])
+    return Q @ D.T + 0.5 * np.tanh(Q / 0.1) + 0.2 * Q ** 3
+
+
+def _data(n=40, N=2, seed=0):
+    rng = np.random.default_rng(seed)
+    Q = rng.uniform(-2, 2, (n, N))
+    A = rng.uniform(0.5, 2.0, N)
+    T = Q * A + 0.3 * np.tanh(Q / 0.2) + 0.05 * rng.standard_normal((n, N))
+    return Q, T
+
+
+def _hp(kind, N, rng):
+    E = N * N if kind == 'full' else N
+    return dict(log_sf2=np.log(rng.uniform(0.2, 2.0, E)), log_ls=np.log(rng.uniform(0.5, 2, (E, N))),
+                log_sn2=np.log(rng.uniform(0.01, 0.1, N)), sx=np.ones(N), sy=np.ones(N),
+                mean=rng.uniform(0.5, 2.0, N))
+
+
+def _dense_reference(kind, hp, X, Y, Xs):
+    """The paper's stacked formulation: one (nN x nN) GP over the stacked force vector and the
+    posterior damping matrix from the cross-covariance Cov(d_mn(q*), tau(q_i))."""
+    n, N = X.shape
+    elems = [(m, k) for m in range(N) for k in range(N)] if kind == 'full' else \
+        [(k, k) for k in range(N)]
+    sf2 = np.exp(hp['log_sf2'])
+    ls = np.exp(hp['log_ls'])
+    sn2 = np.exp(hp['log_sn2'])
+    Ky = np.zeros((n * N, n * N))
+    for e, (m, k) in enumerate(elems):
+        ke = se_ard(X, X, ls[e], sf2[e]) * np.outer(X[:, k], X[:, k])
+        Ky[m::N, m::N] += ke                        # K_tau: block of output m
+    Ky += np.diag(np.repeat(sn2[None, :], n, axis=0).ravel())
+    mu = (X * hp['mean']).ravel()
+    alpha = np.linalg.solve(Ky, Y.ravel() - mu)     # dense, stacked
+    k_ = Xs.shape[0]
+    tau = (Xs * hp['mean'])
+    D = np.zeros((k_, N, N))
+    D[:, np.arange(N), np.arange(N)] = hp['mean']
+    for e, (m, k) in enumerate(elems):
+        Kd = se_ard(Xs, X, ls[e], sf2[e]) * X[:, k][None, :]   # Cov(d_mk(q*), tau_m(q_i))
+        D[:, m, k] += Kd @ alpha[m::N]
+    tau = np.einsum('kij,kj->ki', D, Xs)
+    return tau, D
+
+
+@pytest.mark.parametrize('kind', ['full', 'diag'])
+@pytest.mark.parametrize('N', [1, 2, 3])
+def test_block_solve_equals_dense_stacked(kind, N):
+    rng = np.random.default_rng(N)
+    X = rng.uniform(-2, 2, (25, N))
+    Y = rng.standard_normal((25, N))
+    Xs = rng.uniform(-3, 3, (30, N))
+    hp = _hp(kind, N, rng)
+    m = make_model(kind, hyperparams=hp).fit(X, Y, optimize=False)
+    tau_ref, D_ref = _dense_reference(kind, hp, X, Y, Xs)
+    tau = m.predict(Xs)
+    D = m.damping_matrix(Xs)
+    assert np.max(np.abs(tau - tau_ref)) <= 1e-8 * max(1.0, np.abs(tau_ref).max())
+    assert np.max(np.abs(D - D_ref)) <= 1e-8 * max(1.0, np.abs(D_ref).max())
+    # and tau = D q holds for the model itself
+    assert np.allclose(np.einsum('kij,kj->ki', D, Xs), tau, rtol=1e-10, atol=1e-10)
+
+
+def test_variance_matches_dense():
+    rng = np.random.default_rng(5)
+    X = rng.uniform(-2, 2, (20, 2))
+    Y = rng.standard_normal((20, 2))
+    Xs = rng.uniform(-2, 2, (7, 2))
+    hp = _hp('full', 2, rng)
+    m = FullDGP(hyperparams=hp).fit(X, Y, optimize=False)
+    _, var = m.predict(Xs, return_var=True)
+    sf2, ls, sn2 = np.exp(hp['log_sf2']), np.exp(hp['log_ls']), np.exp(hp['log_sn2'])
+    for out in range(2):
+        def k(A, B):
+            return sum(se_ard(A, B, ls[out * 2 + j], sf2[out * 2 + j]) * np.outer(A[:, j], B[:, j])
+                       for j in range(2))
+        K = k(X, X) + sn2[out] * np.eye(20)
+        Ks = k(Xs, X)
+        ref = np.diag(k(Xs, Xs)) - np.einsum('ij,ji->i', Ks, np.linalg.solve(K, Ks.T))
+        assert np.allclose(var[:, out], ref, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize('kind', ['full', 'diag', 'ard'])
+def test_lml_gradient_matches_finite_differences(kind):
+    rng = np.random.default_rng(1)
+    N = 2
+    X = rng.uniform(-1.5, 1.5, (30, N))
+    y = np.sin(2 * X[:, 0]) * X[:, 1] + 0.1 * rng.standard_normal(30)
+    model = make_model(kind)
+    model._setup_structure(N)
+    rows = model._rows[0]
+    feats = [None if model._elist[e][1] is None else np.outer(X[:, model._elist[e][1]],
+                                                             X[:, model._elist[e][1]])
+             for e in rows]
+    D2 = np.stack([(X[:, d][:, None] - X[:, d][None, :]) ** 2 for d in range(N)])
+    f = _LmlObjective(y, feats, D2, len(rows), N)
+    theta = rng.uniform(-1, 0.5, len(rows) * (N + 1) + 1)
+    _, g = f(theta)
+    h = 1e-6
+    fd = np.array([(f(theta + h * e)[0] - f(theta - h * e)[0]) / (2 * h)
+                   for e in np.eye(theta.size)])
+    assert np.allclose(g, fd, rtol=1e-4, atol=1e-6)
+
+
+def test_optimization_improves_likelihood_and_is_scale_invariant():
+    Q, T = _data(60)
+    m0 = FullDGP().fit(Q, T, optimize=False)
+    m1 = FullDGP().fit(Q, T, optimize=True)
+    assert m1.log_marginal_likelihood() > m0.log_marginal_likelihood()
+    # rad vs m/s vs 1e5 N: rescaling inputs and outputs changes nothing relative
+    S_in, S_out = np.array([0.01, 100.0]), np.array([1e5, 1e-3])
+    m2 = FullDGP().fit(Q * S_in, T * S_out, optimize=True)
+    Qt = np.random.default_rng(3).uniform(-2, 2, (50, 2))
+    assert np.allclose(m2.predict(Qt * S_in) / S_out, m1.predict(Qt), rtol=1e-5, atol=1e-6)
+
+
+def test_prior_mean_least_squares_and_clamp():
+    rng = np.random.default_rng(0)
+    Q = rng.standard_normal((100, 3))
+    T = Q * np.array([2.0, -1.0, 0.5])
+    md = prior_mean_diag(Q, T)
+    assert np.allclose(md, [2.0, 0.0, 0.5])
+    assert np.array_equal(prior_mean_diag(np.zeros((0, 3)), np.zeros((0, 3))), np.zeros(3))
+    assert np.array_equal(prior_mean_diag(np.zeros((5, 2)), np.ones((5, 2))), np.zeros(2))
+
+
+@pytest.mark.parametrize('kind', ['full', 'diag', 'ard'])
+def test_update_matches_refit(kind):
+    Q, T = _data(50)
+    m = make_model(kind).fit(Q[:30], T[:30])
+    for i in range(30, 50):
+        m.update(Q[i], T[i])
+    ref = make_model(kind, hyperparams=m.get_params()['hyperparams']).fit(Q, T, optimize=False)
+    Qt = np.random.default_rng(9).uniform(-2.5, 2.5, (200, 2))
+    a, va = m.predict(Qt, return_var=True)
+    b, vb = ref.predict(Qt, return_var=True)
+    assert np.max(np.abs(a - b)) <= 1e-8 * max(1, np.abs(b).max())
+    assert np.max(np.abs(va - vb)) <= 1e-8 * max(1, np.abs(vb).max())
+    # batch update equals one-by-one
+    m2 = make_model(kind).fit(Q[:30], T[:30]).update(Q[30:], T[30:])
+    assert np.allclose(m2.predict(Qt), a, rtol=1e-10, atol=1e-10)
+
+
+def test_window_matches_refit_on_window():
+    Q, T = _data(80)
+    m = FullDGP(window=25).fit(Q[:25], T[:25])
+    for i in range(25, 80):
+        m.update(Q[i], T[i])
+    assert m.n_samples_ == 25
+    assert np.array_equal(m.X_train_.round(12), Q[-25:].round(12))
+    ref = FullDGP(hyperparams=m.get_params()['hyperparams']).fit(Q[-25:], T[-25:], optimize=False)
+    Qt = np.random.default_rng(2).uniform(-2, 2, (100, 2))
+    assert np.max(np.abs(m.predict(Qt) - ref.predict(Qt))) <= 1e-8 * np.abs(ref.predict(Qt)).max()
+
+
+@pytest.mark.parametrize('mode', ['none', 'paper', 'certified', 'projected'])
+def test_save_load_round_trip_is_exact(tmp_path, mode):
+    Q, T = _data(40)
+    m = FullDGP(passivity=mode).fit(Q, T)
+    m.update(Q[:3] * 0.9, T[:3])
+    p = tmp_path / 'model.npz'
+    m.save(p)
+    r = FullDGP.load(p)
+    Qt = np.random.default_rng(4).uniform(-3, 3, (100, 2))
+    assert np.array_equal(m.predict(Qt), r.predict(Qt))
+    assert np.array_equal(m.damping_matrix(Qt), r.damping_matrix(Qt))
+    assert r.certificate().method == m.certificate().method
+    with pytest.raises(ValueError, match='not a DiagDGP'):
+        DiagDGP.load(p)
+
+
+def test_tampered_truncated_and_foreign_files_raise_clear_errors(tmp_path):
+    Q, T = _data(30)
+    m = DiagDGP().fit(Q, T)
+    p = tmp_path / 'm.npz'
+    m.save(p)
+    # tampered: an array changed, header kept
+    with np.load(p, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays['alpha'] = arrays['alpha'] * 1.0001
+    bad = tmp_path / 'tampered.npz'
+    np.savez(bad, **arrays)
+    with pytest.raises(ValueError, match='checksum mismatch'):
+        load_model(bad)
+    # incompatible version
+    hdr = json.loads(str(arrays['header']))
+    hdr['format_version'] = 99
+    arrays['header'] = np.array(json.dumps(hdr))
+    np.savez(tmp_path / 'v99.npz', **arrays)
+    with pytest.raises(ValueError, match='format version 99'):
+        load_model(tmp_path / 'v99.npz')
+    # truncated
+    raw = p.read_bytes()
+    (tmp_path / 'trunc.npz').write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ValueError, match='unreadable or truncated'):
+        load_model(tmp_path / 'trunc.npz')
+    # foreign: a pickled object array must not be loaded
+    np.save(tmp_path / 'obj.npy', np.array([object()], dtype=object), allow_pickle=True)
+    with zipfile.ZipFile(tmp_path / 'pickle.npz', 'w') as zf:
+        zf.write(tmp_path / 'obj.npy', 'header.npy')
+    with pytest.raises(ValueError):
+        load_model(tmp_path / 'pickle.npz')
+    with pytest.raises(ValueError, match='no such model file'):
+        load_model(tmp_path / 'missing.npz')
+
+
+@pytest.mark.parametrize('bad, match', [
+    (lambda Q, T: (Q * np.nan, T), 'NaN or Inf'),
+    (lambda Q, T: (Q, T[:-1]), 'samples'),
+    (lambda Q, T: (Q[:0], T[:0]), 'empty'),
+    (lambda Q, T: (Q[:, 0], T), '2-D'),
+    (lambda Q, T: (Q, T[:, :1]), 'columns'),
+    (lambda Q, T: (np.full(Q.shape, np.inf), T), 'NaN or Inf'),
+])
+def test_fit_input_validation(bad, match):
+    Q, T = _data(10)
+    with pytest.raises(ValueError, match=match):
+        FullDGP().fit(*bad(Q, T))
+
+
+def test_predict_and_update_validation():
+    Q, T = _data(10)
+    m = FullDGP().fit(Q, T)
+    with pytest.raises(ValueError, match='columns'):
+        m.predict(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match='NaN'):
+        m.predict([np.nan, 0.0])
+    with pytest.raises(ValueError, match='NaN'):
+        m.update([0.0, 1.0], [np.inf, 0.0])
+    with pytest.raises(RuntimeError, match='not fitted'):
+        FullDGP().predict([[0.0, 0.0]])
+    with pytest.raises(ValueError, match='passivity'):
+        FullDGP(passivity='maybe')
+    with pytest.raises(ValueError, match='ArdGP'):
+        ArdGP(passivity='certified')
+    with pytest.raises(NotImplementedError):
+        ArdGP().fit(Q, T).damping_matrix(Q)
+    assert m.predict(Q[0]).shape == (1, 2)
+
+
+def test_copositivity_margin_is_exact_against_sampling():
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((200, 3, 3))
+    marg = copositivity_margin(A)
+    Z = np.abs(rng.standard_normal((20000, 3)))
+    Z /= np.linalg.norm(Z, axis=1, keepdims=True)
+    for k in range(200):
+        sampled = np.einsum('ij,jk,ik->i', Z, A[k], Z).min()
+        assert marg[k] <= sampled + 1e-12          # a lower bound of every sample...
+        assert sampled - marg[k] < 0.05            # ...and tight
+    assert copositivity_margin(np.array([[1.0, -1.0], [-1.0, 1.0]])) == pytest.approx(0.0, abs=1e-12)
+    assert copositivity_margin(np.array([[0.0, 1.0], [1.0, 0.0]])) >= 0   # copositive, not PSD
