@@ -164,7 +164,11 @@ def load_params_file(path) -> dict:
 
 
 def build_config(params: Optional[dict] = None, **overrides):
-    """EstimatorConfig from parameters + overrides, with ``refit_mode='sync'`` (deterministic)."""
+    """EstimatorConfig from parameters + overrides, with ``refit_mode='sync'`` (deterministic).
+
+    ``params`` (e.g. a node parameter file) may hold node-only names, which are ignored;
+    an unknown name in ``overrides`` is an error.
+    """
     from dgp_ros.online import EstimatorConfig
     d = {}
     names = {f for f in EstimatorConfig.__dataclass_fields__}
@@ -485,13 +489,16 @@ def main(argv=None) -> int:
         ap.error('--mass must be a positive number')
     try:
         params = load_params_file(a.params) if a.params else {}
-        params.update(_parse_set(a.set))
+        overrides = _parse_set(a.set)   # unlike the file, unknown names here are an error
         joints = None
         if a.joints is not None:
             joints = [j.strip() for j in a.joints.split(',') if j.strip()]
             if not joints:
                 raise ReplayError('--joints is empty')
-        config = build_config(params, model=a.model, passivity=a.passivity, joints=joints)
+        for k, v in (('model', a.model), ('passivity', a.passivity), ('joints', joints)):
+            if v is not None:
+                overrides[k] = v
+        config = build_config(params, **overrides)
         t0 = time.perf_counter()
         s = run(a.bag, a.out, topic=a.topic, config=config, mass=a.mass,
                 plots=not a.no_plots, progress=not a.quiet, stamp=a.stamp)
