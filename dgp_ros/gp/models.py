@@ -119,6 +119,8 @@ class _BaseGP:
     domain_margin, blend_width : float
         'certified': the verified operating box is the data box grown by ``domain_margin`` of its
         range per side; the correction blends to the prior mean over a further ``blend_width``.
+        If the proof fails there, the domain is shrunk (halved margins, then the data box with a
+        quarter blend) before the correction itself is shrunk.
     max_boxes : int
         Branch-and-bound budget of the domain verification.
     projection_weights : (N,) or None
@@ -133,8 +135,8 @@ class _BaseGP:
     _kind: str = ''
 
     def __init__(self, passivity: str = 'none', noise=None, window: Optional[int] = None,
-                 n_restarts: int = 2, max_opt_samples: int = 300, domain_margin: float = 0.2,
-                 blend_width: float = 0.3, max_boxes: int = 20000, projection_weights=None,
+                 n_restarts: int = 2, max_opt_samples: int = 300, domain_margin: float = 0.1,
+                 blend_width: float = 0.1, max_boxes: int = 200000, projection_weights=None,
                  hyperparams: Optional[dict] = None, random_state: int = 0):
         if passivity not in PASSIVITY_MODES:
             raise ValueError(f'passivity must be one of {PASSIVITY_MODES}, got {passivity!r}')
@@ -289,7 +291,8 @@ class _BaseGP:
                 self._optimize(Qd, Tau)
         self._X = Qd / self._hp['sx']
         self._R = Tau / self._hp['sy'] - self._prior_std(self._X)
-        self._domain = self._make_domain(Qd)
+        self._data_box = self._box_of(Qd)
+        self._domain = self._make_domain(self._data_box, self.domain_margin, self.blend_width)
         self._scale = 1.0
         self._leaves = None
         self._stale = False
@@ -687,11 +690,17 @@ class _BaseGP:
                                coef, hp['mean'], hp['sx'], hp['sy'],
                                lambda Q: self._damping_unprojected(Q, np.full(Q.shape[0], scale)))
 
-    def _make_domain(self, Qd):
+    @staticmethod
+    def _box_of(Qd):
         lo, hi = Qd.min(axis=0), Qd.max(axis=0)
-        rng = np.maximum(hi - lo, np.maximum(0.1 * _rms(Qd), 1e-9))
-        ilo, ihi = lo - self.domain_margin * rng, hi + self.domain_margin * rng
-        olo, ohi = ilo - self.blend_width * rng, ihi + self.blend_width * rng
+        return lo, hi, np.maximum(hi - lo, np.maximum(0.1 * _rms(Qd), 1e-9))
+
+    @staticmethod
+    def _make_domain(box, margin, blend):
+        """Inner (verified, w = 1) and outer (w = 0 beyond) boxes from the data box."""
+        lo, hi, rng = box
+        ilo, ihi = lo - margin * rng, hi + margin * rng
+        olo, ohi = ilo - blend * rng, ihi + blend * rng
         return (ilo, ihi), (olo, ohi)
 
     def _enforce_certified(self, after_update):
@@ -719,24 +728,39 @@ class _BaseGP:
     def _enforce_certified_full(self, after_update):
         start = self._scale if after_update else 1.0
         B = self._l1_bound()
-        (ilo, ihi), (olo, ohi) = self._domain
-        res = verify_box(self._terms(start), olo, ohi, max_boxes=self.max_boxes,
-                         leaves=self._leaves if after_update else None)
-        if res.ok:
-            self._scale = start
-            self._leaves = res.leaves
-            self._cert = Certificate(True, res.margin, 'domain-bnb+blend', (ilo, ihi), start,
-                                     {'boxes': res.boxes, 'bnb_seconds': res.seconds})
-            return
-        # shrink: the global L1 scale is always provable; bisect above it with the domain proof
+        if after_update:
+            domains = [self._domain]
+        else:
+            domains = [self._make_domain(self._data_box, f_m, f_b) for f_m, f_b in
+                       ((self.domain_margin, self.blend_width),
+                        (0.5 * self.domain_margin, 0.5 * self.blend_width),
+                        (0.0, 0.25 * self.blend_width))]
+        res = None
+        for k, dom in enumerate(domains):
+            (ilo, ihi), (olo, ohi) = dom
+            budget = self.max_boxes if k == 0 else max(self.max_boxes // 4, 500)
+            res = verify_box(self._terms(start), olo, ohi, max_boxes=budget,
+                             leaves=self._leaves if after_update else None)
+            if res.ok:
+                self._domain = dom
+                self._scale = start
+                self._leaves = res.leaves
+                self._cert = Certificate(True, res.margin, 'domain-bnb+blend', (ilo, ihi), start,
+                                         {'boxes': res.boxes, 'bnb_seconds': res.seconds,
+                                          'outer_box': [olo.tolist(), ohi.tolist()]})
+                return
+        # shrink the correction on the smallest domain: the global L1 scale is always provable;
+        # bisect above it with the domain proof
+        self._domain = dom = domains[-1]
+        (ilo, ihi), (olo, ohi) = dom
         s_lo = self._max_scale(B, start)
         s_hi = start
         best = None
-        for _ in range(8):
+        for _ in range(6):
             if s_hi - s_lo <= 0.02 * start:
                 break
             mid = 0.5 * (s_lo + s_hi)
-            r = verify_box(self._terms(mid), olo, ohi, max_boxes=max(self.max_boxes // 4, 500))
+            r = verify_box(self._terms(mid), olo, ohi, max_boxes=max(self.max_boxes // 8, 500))
             if r.ok:
                 s_lo, best = mid, r
             else:
@@ -746,6 +770,7 @@ class _BaseGP:
             self._leaves = best.leaves
             self._cert = Certificate(True, best.margin, 'domain-bnb+blend', (ilo, ihi), s_lo,
                                      {'boxes': best.boxes, 'bnb_seconds': best.seconds,
+                                      'outer_box': [olo.tolist(), ohi.tolist()],
                                       'reason': res.reason})
         else:
             self._leaves = None
