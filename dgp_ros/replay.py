@@ -29,7 +29,7 @@ Writes to ``DIR``:
   ``P_hat`` (``qd.tau_hat``), ``source`` (model/prior/fallback) and ``added`` (0/1). Rejected
   messages have no row (they are counted in the summary).
 - ``summary.json``: NMSE per output (all estimates, and model-only estimates), RMSE (and RMSE /
-  mass with ``--mass``), negative-power fractions (estimate and measurement), refits, timings,
+  mass with ``--mass``), median absolute error, count of huge/non-finite estimates, negative-power fractions (estimate and measurement), refits, timings,
   rejected-message counts by reason, certificate at the end, the configuration used.
 - ``estimate_vs_measurement.png``, ``error.png`` (divided by the mass when given: m/s^2),
   ``power_hist.png`` (matplotlib, Agg backend).
@@ -254,8 +254,13 @@ def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False
 
 # ----------------------------------------------------------------------------------- outputs
 def _nmse(err, y):
+    """(NMSE, MSE); inf if an estimate is non-finite or overflows (JSON writes it as null,
+    ``huge_or_nonfinite`` in the summary says why)."""
     var = float(np.var(y)) if y.size else float('nan')
-    mse = float(np.mean(err ** 2)) if err.size else float('nan')
+    with np.errstate(over='ignore', invalid='ignore'):
+        mse = float(np.mean(np.square(err))) if err.size else float('nan')
+    if math.isnan(mse) and err.size:
+        mse = float('inf')
     return mse / var if var > 0 else float('nan'), mse
 
 
@@ -318,7 +323,12 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
         for i, j in enumerate(names):
             nmse, mse = _nmse(err[:, i], A['tau'][:, i])
             nmse_m, _ = _nmse(err[model, i], A['tau'][model, i])
+            th = A['tau_hat'][:, i]
+            scale = 1e6 * max(float(np.max(np.abs(A['tau'][:, i]))), 1.0)
             d = dict(nmse=nmse, nmse_model_only=nmse_m, rmse=math.sqrt(mse),
+                     median_abs_error=float(np.median(np.abs(err[:, i]))),
+                     # estimates that are non-finite or > 1e6 x the largest measurement
+                     huge_or_nonfinite=int(np.sum(~np.isfinite(th) | (np.abs(th) > scale))),
                      mean_stddev=float(np.mean(A['stddev'][:, i])))
             if mass:
                 d['rmse_per_mass'] = math.sqrt(mse) / mass
@@ -510,7 +520,8 @@ def main(argv=None) -> int:
         print(f'{prog}: interrupted', file=sys.stderr)
         return 130
     if not a.quiet:
-        nm = ', '.join(f'{j} {v:.4g}' if v is not None else f'{j} n/a'
+        nm = ', '.join(f'{j} {v:.4g}' if v is not None else
+                       f'{j} inf/n.a. ({s["outputs"][j]["huge_or_nonfinite"]} huge estimates)'
                        for j, v in s['nmse'].items())
         print(f'{prog}: {s["estimates"]}/{s["messages"]} messages on {s["topic"]}; NMSE {nm}; '
               f'P_hat<0 fraction {s["negative_power_fraction"]}; refits ok {s["refits"]["ok"]} '
