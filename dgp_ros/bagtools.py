@@ -19,9 +19,10 @@ Record (``dgp-record``)
     after ``--max-messages`` messages.
 
 Play (``dgp-play``)
-    Publishes the stored bytes as-is (rclpy publishes ``bytes`` raw) with the original inter-message
-    timing scaled by ``--rate`` (``0`` = as fast as possible), optionally publishing ``/clock`` with
-    the bag time, looping, and remapping topics (``--remap from:=to``; ``--ros-args -r`` works too).
+    Publishes the stored bytes as-is (rclpy publishes ``bytes`` raw) with the original
+    inter-message timing (the bag's receive timestamps) scaled by ``--rate`` (``0`` = as fast as
+    possible), optionally publishing ``/clock`` with the bag time, looping, and remapping topics
+    (``--remap from:=to``; ``--ros-args -r`` works too).
 
 Both commands print a one-line message and exit with code 2 for a missing, corrupt or truncated
 bag (no traceback). The library functions (:func:`open_bag`, :func:`iter_bag`, :class:`Recorder`,
@@ -142,7 +143,7 @@ def bag_summary(path) -> dict:
 # --------------------------------------------------------------------------------------------
 
 def normalize_type(msgtype: str) -> str:
-    """``sensor_msgs/JointState`` or ``sensor_msgs/msg/JointState`` -> ``sensor_msgs/msg/JointState``."""
+    """``pkg/Name`` or ``pkg/msg/Name`` -> ``pkg/msg/Name``."""
     parts = [x for x in msgtype.strip().split('/') if x]
     if len(parts) == 2:
         parts = [parts[0], 'msg', parts[1]]
@@ -712,7 +713,8 @@ def record_main(argv=None) -> int:
     ap.add_argument('topics', nargs='*', help='topics to record (type taken from the graph)')
     ap.add_argument('--topic', '-t', action='append', default=[], metavar='NAME[:TYPE]',
                     help='topic to record, optionally with its type (pkg/msg/Name); repeatable')
-    ap.add_argument('--output', '-o', required=True, help='bag directory to create (must not exist)')
+    ap.add_argument('--output', '-o', required=True,
+                    help='bag directory to create (must not exist)')
     ap.add_argument('--storage', '-s', choices=STORAGES, default='sqlite3')
     ap.add_argument('--duration', '-d', type=float, default=0.0,
                     help='stop after this many seconds (wall time; 0 = until SIGINT/SIGTERM)')

@@ -29,7 +29,8 @@ Writes to ``DIR``:
   ``P_hat`` (``qd.tau_hat``), ``source`` (model/prior/fallback) and ``added`` (0/1). Rejected
   messages have no row (they are counted in the summary).
 - ``summary.json``: NMSE per output (all estimates, and model-only estimates), RMSE (and RMSE /
-  mass with ``--mass``), median absolute error, count of huge/non-finite estimates, negative-power fractions (estimate and measurement), refits, timings,
+  mass with ``--mass``), median absolute error, count of huge/non-finite estimates,
+  negative-power fractions (estimate and measurement), refits, timings,
   rejected-message counts by reason, certificate at the end, the configuration used.
 - ``estimate_vs_measurement.png``, ``error.png`` (divided by the mass when given: m/s^2),
   ``power_hist.png`` (matplotlib, Agg backend).
@@ -391,8 +392,8 @@ def make_plots(out: Path, estimates, names, mass=None) -> list:
         ax.plot(t, A['tau_hat'][:, i], lw=1.0, color='C0', label='estimate')
         sd = A['stddev'][:, i]
         ok = np.isfinite(sd)
-        ax.fill_between(t[ok], (A['tau_hat'][:, i] - 2 * sd)[ok], (A['tau_hat'][:, i] + 2 * sd)[ok],
-                        color='C0', alpha=0.2, lw=0, label='±2σ')
+        lo, hi = (A['tau_hat'][:, i] - 2 * sd)[ok], (A['tau_hat'][:, i] + 2 * sd)[ok]
+        ax.fill_between(t[ok], lo, hi, color='C0', alpha=0.2, lw=0, label='±2σ')
         ax.set_ylabel(f'{j}')
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc='upper right', fontsize=8)

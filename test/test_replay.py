@@ -84,7 +84,8 @@ def _max_diff(node_out, offline):
         key = (sec, int(round((e.stamp_s - sec) * 1e9)))
         force, std = node_out[key]
         assert np.array_equal(np.asarray(force.velocity), e.qd)
-        for live, off in ((np.asarray(force.effort), e.tau_hat), (np.asarray(std.effort), e.stddev)):
+        for live, off in ((np.asarray(force.effort), e.tau_hat),
+                          (np.asarray(std.effort), e.stddev)):
             assert np.array_equal(np.isnan(live), np.isnan(off))   # NaN would hide in max()
             ok = ~np.isnan(off)
             worst = max(worst, float(np.max(np.abs(live[ok] - off[ok]), initial=0.0)))
