@@ -1,0 +1,343 @@
+"""Unit tests of dgp_ros.online (pure Python, no ROS): validation, selection, prior, refits,
+passivity, persistence, diagnostics."""
+import math
+
+import numpy as np
+import pytest
+
+from dgp_ros.gp import prior_mean_diag
+from dgp_ros.online import ERROR, OK, WARN, EstimatorConfig, OnlineEstimator
+
+NAMES = ['a', 'b', 'c']
+
+
+def true_tau(q):
+    """A passive nonlinear damping D(q) q (D symmetric positive definite)."""
+    q = np.asarray(q, float)
+    D = np.diag([2.0 + np.sin(q[0]), 1.0 + 0.5 * q[1] ** 2, 0.5 + 0.1 * abs(q[2])])
+    D[0, 1] = D[1, 0] = 0.3 * np.cos(q[2])
+    return D @ q
+
+
+def traj(t):
+    return np.array([np.sin(0.7 * t), 0.8 * np.cos(0.31 * t), 2.0 + np.sin(0.13 * t)])
+
+
+def feed(est, n, t0=0.0, dt=0.05, noise=0.02, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        t = t0 + i * dt
+        q = traj(t)
+        out.append(est.process(t, NAMES, q, true_tau(q) + rng.normal(0, noise, 3)))
+    return out
+
+
+def cfg(**kw):
+    base = dict(model='full', passivity='projected', buffer_size=40, min_samples=10,
+                refit_mode='sync', refit_period_s=0.0, selection='all')
+    base.update(kw)
+    return EstimatorConfig(**base)
+
+
+# ----------------------------------------------------------------------------- config
+@pytest.mark.parametrize('field,value,words', [
+    ('model', 'gpytorch', 'model'), ('passivity', 'sometimes', 'passivity'),
+    ('buffer_size', 1, 'buffer_size'), ('buffer_size', 10.5, 'integer'),
+    ('min_samples', 0, 'min_samples'), ('min_samples', 500, 'buffer_size'),
+    ('refit_period_s', -1.0, 'refit_period_s'), ('refit_period_s', float('nan'), 'finite'),
+    ('optimize_every_n_refits', -2, 'optimize_every_n_refits'),
+    ('selection', 'random', 'selection'), ('selection_min_distance', -0.1, '>= 0'),
+    ('joints', ['a', 'a'], 'unique'), ('joints', ['a', ''], 'joints'),
+    ('refit_mode', 'thread', 'refit_mode'), ('model_path', '/nonexistent/dir/m.npz', 'directory'),
+    ('selection_scale', [1.0, -1.0], 'selection_scale'), ('max_abs_effort', 0.0, 'max_abs_effort'),
+])
+def test_config_validate_rejects_with_reason(field, value, words):
+    c = EstimatorConfig(**{field: value})
+    with pytest.raises(ValueError) as exc:
+        c.validate()
+    assert field in str(exc.value) and words in str(exc.value)
+
+
+def test_config_ard_cannot_be_certified():
+    with pytest.raises(ValueError, match='ARD'):
+        EstimatorConfig(model='ard', passivity='certified').validate()
+    EstimatorConfig(model='ard', passivity='projected').validate()
+
+
+def test_config_from_dict_unknown_key():
+    with pytest.raises(ValueError, match='bogus'):
+        EstimatorConfig.from_dict({'bogus': 1})
+
+
+# ----------------------------------------------------------------------------- validation
+def test_bad_messages_rejected_and_counted_never_raise():
+    est = OnlineEstimator(cfg(joints=['a', 'b', 'c'], max_abs_velocity=100.0))
+    good = est.process(0.0, NAMES, [0.1, 0.2, 0.3], [0.2, 0.2, 0.1])
+    assert good is not None
+    bad = [
+        ((0.1, NAMES, [0.1, float('nan'), 0.3], [1, 1, 1]), 'non_finite'),
+        ((0.1, NAMES, [0.1, 0.2, 0.3], [1, float('inf'), 1]), 'non_finite'),
+        ((0.1, NAMES, [0.1, 0.2], [1, 1]), 'length_mismatch'),
+        ((0.1, NAMES, [0.1, 0.2, 0.3], [1, 1]), 'length_mismatch'),
+        ((0.1, ['a', 'a', 'c'], [0.1, 0.2, 0.3], [1, 1, 1]), 'duplicate_name'),
+        ((0.1, ['a', 'b', 'x'], [0.1, 0.2, 0.3], [1, 1, 1]), 'missing_joint'),
+        ((0.1, [], [0.1, 0.2, 0.3], [1, 1, 1]), 'missing_joint'),
+        ((0.1, NAMES, [], []), 'empty'),
+        ((0.1, NAMES, [0.1, 200.0, 0.3], [1, 1, 1]), 'out_of_range'),
+        ((float('nan'), NAMES, [0.1, 0.2, 0.3], [1, 1, 1]), 'bad_stamp'),
+        ((0.1, NAMES, ['x', 'y', 'z'], [1, 1, 1]), 'non_finite'),
+        ((0.1, NAMES, None, [1, 1, 1]), 'empty'),
+    ]
+    for args, reason in bad:
+        before = est.rejected[reason]
+        assert est.process(*args) is None, reason
+        assert est.rejected[reason] == before + 1, reason
+    d = est.diagnostics()
+    assert d['rejected_total'] == len(bad)
+    assert d['messages_accepted'] == 1 and d['buffer_fill'] == 1
+    assert d['level'] >= WARN and 'many rejected samples' in d['message']
+
+
+def test_dimension_mismatch_without_joint_names():
+    est = OnlineEstimator(cfg())
+    assert est.process(0.0, [], [0.1, 0.2, 0.3], [1, 1, 1]) is not None
+    assert est.process(0.1, [], [0.1, 0.2], [1, 1]) is None
+    assert est.rejected['dimension_mismatch'] == 1
+
+
+def test_joints_select_and_order_by_name():
+    est = OnlineEstimator(cfg(joints=['c', 'a']))
+    e = est.process(1.0, ['a', 'b', 'c'], [1.0, 2.0, 3.0], [10.0, 20.0, 30.0])
+    assert e.names == ['c', 'a']
+    np.testing.assert_array_equal(e.qd, [3.0, 1.0])
+    np.testing.assert_array_equal(e.tau, [30.0, 10.0])
+    # the message order may change: still selected by name
+    e = est.process(1.1, ['c', 'b', 'a'], [3.0, 2.0, 1.5], [30.0, 20.0, 15.0])
+    np.testing.assert_array_equal(e.qd, [3.0, 1.5])
+
+
+def test_names_latched_from_first_message_when_joints_empty():
+    est = OnlineEstimator(cfg())
+    est.process(0.0, ['a', 'b', 'c'], [1.0, 2.0, 3.0], [1.0, 2.0, 3.0])
+    e = est.process(0.1, ['b', 'c', 'a'], [2.0, 3.0, 1.0], [2.0, 3.0, 1.0])
+    assert e.names == ['a', 'b', 'c']
+    np.testing.assert_array_equal(e.qd, [1.0, 2.0, 3.0])
+
+
+# ----------------------------------------------------------------------------- selection
+def test_novelty_selection_keeps_hover_out_of_buffer():
+    est = OnlineEstimator(cfg(selection='novelty', selection_min_distance=0.1, buffer_size=100,
+                              min_samples=100))
+    feed(est, 30, dt=0.3)                      # diverse flight
+    n0 = est.diagnostics()['buffer_fill']
+    assert n0 >= 20
+    rng = np.random.default_rng(1)
+    hover = np.array([0.3, 0.4, 2.1])
+    for i in range(500):                        # hovering: tiny noise around one state
+        q = hover + rng.normal(0, 1e-4, 3)
+        est.process(20.0 + i * 0.01, NAMES, q, true_tau(q))
+    d = est.diagnostics()
+    assert d['buffer_fill'] <= n0 + 2
+    assert d['samples_skipped'] >= 498
+
+    all_est = OnlineEstimator(cfg(selection='all', buffer_size=100, min_samples=100))
+    for i in range(50):
+        q = hover + rng.normal(0, 1e-4, 3)
+        all_est.process(i * 0.01, NAMES, q, true_tau(q))
+    assert all_est.diagnostics()['buffer_fill'] == 50   # the check above can fail
+
+
+# ----------------------------------------------------------------------------- prior + refit
+def test_prior_mean_before_min_samples():
+    est = OnlineEstimator(cfg(min_samples=10))
+    rng = np.random.default_rng(3)
+    Q, T = [], []
+    for i in range(9):
+        q = traj(i * 0.2)
+        tau = true_tau(q) + rng.normal(0, 0.02, 3)
+        Q.append(q), T.append(tau)
+        e = est.process(i * 0.2, NAMES, q, tau)
+        assert e.source == 'prior'
+        m_d = prior_mean_diag(np.array(Q), np.array(T))
+        np.testing.assert_allclose(e.tau_hat, m_d * q)
+        np.testing.assert_allclose(e.D, np.diag(m_d))
+        assert e.power >= 0
+    d = est.diagnostics()
+    assert not d['trained'] and d['level'] == WARN and 'not yet trained' in d['message']
+
+
+def test_sync_refit_trains_and_converges():
+    est = OnlineEstimator(cfg(buffer_size=50, min_samples=15, refit_period_s=5.0,
+                              optimize_every_n_refits=2))
+    out = feed(est, 120, dt=0.1)
+    assert out[-1].source == 'model'
+    d = est.diagnostics()
+    assert d['trained'] and d['certified'] and d['method'] == 'projection' and d['refits_ok'] >= 2 and d['refits_failed'] == 0
+    assert d['level'] == OK, d['message']
+    err = np.array([e.tau_hat - true_tau(e.qd) for e in out[-50:]])
+    ref = np.array([true_tau(e.qd) for e in out])
+    nmse = (err ** 2).mean(0) / ref.var(0)
+    assert np.all(nmse < 0.02), nmse
+    assert out[-1].D.shape == (3, 3)
+    np.testing.assert_allclose(out[-1].D @ out[-1].qd, out[-1].tau_hat, rtol=1e-6, atol=1e-9)
+    assert np.all(out[-1].stddev >= 0)
+
+
+def test_refit_on_request_and_not_enough_samples():
+    est = OnlineEstimator(cfg(min_samples=10))
+    ok, msg = est.request_refit()
+    assert not ok and 'not enough samples' in msg
+    feed(est, 12)
+    n = est.diagnostics()['refits_ok']
+    ok, msg = est.request_refit()
+    assert ok, msg
+    assert est.diagnostics()['refits_ok'] == n + 1
+
+
+def test_async_refit_replays_samples_and_swaps():
+    est = OnlineEstimator(cfg(refit_mode='async', buffer_size=50, min_samples=10))
+    feed(est, 40)                             # refit started at 10 samples, others arrive
+    assert est.wait_for_refit(timeout=120)
+    d = est.diagnostics()
+    assert d['trained'] and d['refits_ok'] == 1
+    # every buffered sample is in the swapped-in model (replayed with update)
+    assert est.model.n_samples_ == d['buffer_fill'] == 40
+    X, _ = est._buf.arrays()
+    np.testing.assert_allclose(est.model.X_train_, X, rtol=1e-12, atol=1e-12)
+    est.close()
+
+
+def test_uncertified_refit_is_not_swapped(monkeypatch):
+    est = OnlineEstimator(cfg(min_samples=10, passivity='certified'))
+    monkeypatch.setattr(OnlineEstimator, '_certified',
+                        staticmethod(lambda model, c: (False, 'test: certificate fails')))
+    out = feed(est, 12)
+    assert out[-1].source == 'prior'
+    for _ in range(3):
+        est.request_refit()
+    d = est.diagnostics()
+    assert not d['trained'] and d['refits_failed'] == 4 and d['refits_ok'] == 0
+    assert d['level'] == ERROR and 'refit failing' in d['message']
+    assert 'not certified' in d['message']
+
+
+# ----------------------------------------------------------------------------- passivity
+@pytest.mark.parametrize('passivity', ['paper', 'certified', 'projected'])
+def test_never_non_passive(passivity):
+    # data with a non-passive region (negative damping near q = 0 on output 0) and big noise
+    est = OnlineEstimator(cfg(passivity=passivity, buffer_size=30, min_samples=10,
+                              refit_period_s=2.0, optimize_every_n_refits=0))
+    rng = np.random.default_rng(7)
+    for i in range(50):
+        q = rng.uniform(-2, 2, 3)
+        tau = true_tau(q) + rng.normal(0, 0.5, 3)
+        tau[0] -= 3.0 * q[0] * np.exp(-q[0] ** 2)        # locally negative damping
+        e = est.process(i * 0.1, NAMES, q, tau)
+        assert e.power >= 0.0
+    assert est.trained
+    Qs = np.vstack([rng.uniform(-3, 3, (3000, 3)), rng.normal(0, 20, (500, 3)),
+                    rng.uniform(-1e-3, 1e-3, (500, 3))])
+    tau = est.predict(Qs)
+    power = np.einsum('ij,ij->i', Qs, tau)
+    assert power.min() >= 0.0
+
+
+def test_guard_falls_back_to_prior_when_model_is_not_passive():
+    est = OnlineEstimator(cfg(passivity='paper'))
+    feed(est, 12)
+    assert est.trained
+
+    class Evil:                                    # a broken model: anti-damping
+        def predict(self, Q, return_var=False):
+            tau = -np.atleast_2d(Q)
+            return (tau, np.ones_like(tau)) if return_var else tau
+
+        def damping_matrix(self, Q):
+            return -np.eye(3)[None]
+
+        def update(self, q, t):
+            pass
+
+    est._model = Evil()
+    e = est.process(5.0, NAMES, [0.5, 0.5, 2.0], [1.0, 0.5, 1.0])
+    assert e.source == 'fallback' and e.power >= 0
+    assert est.diagnostics()['passivity_fallbacks'] == 1
+
+
+# ----------------------------------------------------------------------------- persistence
+def test_save_and_restore_give_identical_estimates(tmp_path):
+    path = str(tmp_path / 'model.npz')
+    est = OnlineEstimator(cfg(model_path=path))
+    with pytest.raises(RuntimeError):
+        est.save()
+    feed(est, 30)
+    assert est.trained
+    assert est.save() == path                      # also saved on refit; explicit save here
+    rng = np.random.default_rng(5)
+    Qs = rng.uniform(-2, 2, (200, 3))
+    before = est.predict(Qs)
+    est2 = OnlineEstimator(cfg(model_path=path))
+    assert est2.trained and not est2.load_error
+    np.testing.assert_array_equal(est2.predict(Qs), before)
+    q, tau = traj(7.0), true_tau(traj(7.0))
+    a = est.process(10.0, NAMES, q, tau)
+    b = est2.process(10.0, NAMES, q, tau)
+    np.testing.assert_array_equal(a.tau_hat, b.tau_hat)
+    np.testing.assert_array_equal(a.stddev, b.stddev)
+    assert not [p for p in tmp_path.iterdir() if p.name != 'model.npz']   # no temp leftovers
+
+
+def test_unusable_model_file_is_reported(tmp_path):
+    path = tmp_path / 'm.npz'
+    path.write_bytes(b'not a model')
+    est = OnlineEstimator(cfg(model_path=str(path)))
+    assert not est.trained and 'could not use' in est.load_error
+    assert 'model file not used' in est.diagnostics()['message']
+
+
+def test_loaded_model_of_other_kind_not_used(tmp_path):
+    path = str(tmp_path / 'm.npz')
+    est = OnlineEstimator(cfg(model='diag', model_path=path))
+    feed(est, 12)
+    est.save()
+    est2 = OnlineEstimator(cfg(model='full', model_path=path))
+    assert not est2.trained and "'diag'" in est2.load_error
+
+
+# ----------------------------------------------------------------------------- clock, reset
+def test_stamp_jump_back_keeps_model_and_counts():
+    est = OnlineEstimator(cfg(refit_period_s=3.0, optimize_every_n_refits=0))
+    feed(est, 25, t0=100.0, dt=0.1)
+    n_ok = est.diagnostics()['refits_ok']
+    assert est.trained
+    feed(est, 5, t0=0.0, dt=0.1)                 # bag looped: stamps restart at 0
+    d = est.diagnostics()
+    assert d['time_jumps_back'] == 1 and d['trained']
+    assert d['refits_ok'] == n_ok                # no spurious refit
+    feed(est, 30, t0=0.5, dt=0.1)                # refit clock restarted at the new stamp
+    assert est.diagnostics()['refits_ok'] > n_ok
+
+
+def test_reset_and_reconfigure():
+    est = OnlineEstimator(cfg())
+    feed(est, 20)
+    assert est.trained
+    msg = est.reconfigure(cfg(min_samples=12))
+    assert msg == 'applied' and est.trained
+    msg = est.reconfigure(cfg(model='diag'))
+    assert 'model' in msg and not est.trained
+    assert est.diagnostics()['buffer_fill'] == 20
+    e = feed(est, 1, t0=10.0)[0]                 # refit requested: trains on the next sample
+    assert est.trained and e is not None
+    est.reset()
+    d = est.diagnostics()
+    assert not d['trained'] and d['buffer_fill'] == 0 and d['messages_received'] == 0
+
+
+def test_ard_baseline_has_no_damping_matrix():
+    est = OnlineEstimator(cfg(model='ard', passivity='projected'))
+    out = feed(est, 15)
+    assert out[-1].source == 'model' and out[-1].D is None
+    assert all(e.power >= 0 for e in out)
+    assert math.isfinite(out[-1].power)
