@@ -1,0 +1,283 @@
+"""In-process tests of the dgp_estimator node: a context per test, always shut down."""
+import dataclasses
+import os
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from dgp_ros.estimator_node import EstimatorNode  # noqa: E402
+from dgp_ros.online import EstimatorConfig  # noqa: E402
+
+pytestmark = pytest.mark.ros
+NAMES = ['alpha', 'beta', 'airspeed']
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def true_tau(q):
+    D = np.diag([2.0 + np.sin(q[0]), 1.0 + 0.5 * q[1] ** 2, 0.5 + 0.1 * abs(q[2])])
+    D[0, 1] = D[1, 0] = 0.3 * np.cos(q[2])
+    return D @ q
+
+
+def traj(t):
+    return np.array([np.sin(0.7 * t), 0.8 * np.cos(0.31 * t), 2.0 + np.sin(0.13 * t)])
+
+
+def state_msg(t, q, tau, names=NAMES):
+    m = JointState()
+    m.header.stamp.sec = int(t)
+    m.header.stamp.nanosec = int(round((t - int(t)) * 1e9))
+    m.name = list(names)
+    m.velocity = [float(v) for v in q]
+    m.effort = [float(v) for v in tau]
+    return m
+
+
+FAST = [Parameter('buffer_size', value=40), Parameter('min_samples', value=10),
+        Parameter('refit_period_s', value=0.0), Parameter('selection', value='all'),
+        Parameter('diagnostics_period_s', value=0.2)]
+
+
+class Rig:
+    """A context, an executor, the estimator node and a helper node (publisher/recorder)."""
+
+    def __init__(self, overrides=()):
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.nodes = []
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.est = None
+        self.helper = rclpy.create_node('helper', context=self.ctx)
+        self._add(self.helper)
+        self.got = {k: [] for k in ('force', 'std', 'D', 'power', 'diag')}
+        h = self.helper
+        h.create_subscription(JointState, '/dgp_estimator/damping_force',
+                              lambda m: self.got['force'].append(m), 100)
+        h.create_subscription(JointState, '/dgp_estimator/damping_force_stddev',
+                              lambda m: self.got['std'].append(m), 100)
+        h.create_subscription(Float64MultiArray, '/dgp_estimator/damping_matrix',
+                              lambda m: self.got['D'].append(m), 100)
+        h.create_subscription(Float64, '/dgp_estimator/dissipated_power',
+                              lambda m: self.got['power'].append(m), 100)
+        h.create_subscription(DiagnosticArray, '/diagnostics',
+                              lambda m: self.got['diag'].append(m), 100)
+        self.pub = h.create_publisher(JointState, 'generalized_state', 100)
+        self.pub_be = h.create_publisher(
+            JointState, 'generalized_state',
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+        if overrides is not None:
+            self.start_estimator(overrides)
+
+    def _add(self, node):
+        self.nodes.append(node)
+        self.ex.add_node(node)
+
+    def start_estimator(self, overrides):
+        self.est = EstimatorNode(context=self.ctx, parameter_overrides=list(overrides))
+        self._add(self.est)
+        self.spin_until(lambda: self.pub.get_subscription_count() >= 1, 10)
+        return self.est
+
+    def stop_estimator(self):
+        self.est.shutdown()
+        self.ex.remove_node(self.est)
+        self.nodes.remove(self.est)
+        self.est.destroy_node()
+        self.est = None
+
+    def spin_until(self, cond, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if cond():
+                return True
+            self.ex.spin_once(timeout_sec=0.05)
+        return cond()
+
+    def call(self, name, timeout=30.0):
+        cli = self.helper.create_client(Trigger, name)
+        assert self.spin_until(lambda: cli.service_is_ready(), 10), name
+        fut = cli.call_async(Trigger.Request())
+        assert self.spin_until(fut.done, timeout), name
+        self.helper.destroy_client(cli)
+        return fut.result()
+
+    def close(self):
+        try:
+            if self.est is not None:
+                self.est.estimator.close(timeout=30)
+            for n in self.nodes:
+                self.ex.remove_node(n)
+                n.destroy_node()
+            self.ex.shutdown()
+        finally:
+            self.ctx.try_shutdown()
+
+
+@pytest.fixture
+def rig():
+    r = Rig(overrides=None)
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def feed(rig, n, t0=0.0, dt=0.1, pub=None, noise=0.01, seed=0, wait=True):
+    rng = np.random.default_rng(seed)
+    pub = pub or rig.pub
+    for i in range(n):
+        t = t0 + i * dt
+        q = traj(t)
+        pub.publish(state_msg(t, q, true_tau(q) + rng.normal(0, noise, 3)))
+        k = len(rig.got['force'])
+        if wait:
+            rig.spin_until(lambda: len(rig.got['force']) > k, 5)
+
+
+def test_every_topic_publishes_and_estimate_converges(rig):
+    est = rig.start_estimator(FAST)
+    feed(rig, 12)                                  # reliable publisher
+    assert est.estimator.wait_for_refit(120)
+    feed(rig, 60, t0=1.2, pub=rig.pub_be)          # best-effort publisher matches too
+    assert rig.spin_until(lambda: len(rig.got['diag']) >= 2, 10)
+    g = rig.got
+    assert len(g['force']) >= 60 and len(g['std']) >= 60 and len(g['power']) >= 60
+    assert len(g['D']) >= 60
+    f = g['force'][-1]
+    assert list(f.name) == NAMES
+    # each answer pairs with its measurement: same stamp, velocity it was evaluated at
+    for m in g['force'][-20:]:
+        t = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
+        np.testing.assert_allclose(m.velocity, traj(t), rtol=1e-9, atol=1e-9)
+    tau_hat = np.array(f.effort)
+    np.testing.assert_allclose(tau_hat, true_tau(np.array(f.velocity)), atol=0.1)
+    # damping matrix: layout and D qd = tau_hat
+    D = g['D'][-1]
+    assert [d.label for d in D.layout.dim] == ['rows', 'cols']
+    assert [d.size for d in D.layout.dim] == [3, 3]
+    assert [d.stride for d in D.layout.dim] == [9, 3]
+    # (a matrix has no stamp: pair it with one of the last answers)
+    Dm = np.array(D.data).reshape(3, 3)
+    assert any(np.allclose(Dm @ np.array(m.velocity), np.array(m.effort), rtol=1e-6, atol=1e-9)
+               for m in g['force'][-5:])
+    assert any(g['power'][-1].data == pytest.approx(float(np.dot(m.velocity, m.effort)))
+               for m in g['force'][-5:])
+    assert all(p.data >= 0 for p in g['power'])
+    assert all(np.all(np.array(s.effort) >= 0) for s in g['std'])
+    # the estimate converged: late errors are small against the force range
+    errs = [np.array(m.effort) - true_tau(np.array(m.velocity)) for m in g['force'][-30:]]
+    assert np.sqrt(np.mean(np.square(errs))) < 0.05
+    st = g['diag'][-1].status[0]
+    vals = {kv.key: kv.value for kv in st.values}
+    assert st.level == b'\x00', st.message
+    assert vals['trained'] == 'True' and vals['certified'] == 'True'
+    assert int(vals['buffer_fill']) == 40 and 'rejected/non_finite' in vals
+    assert float(vals['refits_ok']) >= 1
+
+
+def test_bad_messages_rejected_and_reported(rig):
+    rig.start_estimator(FAST)
+    feed(rig, 1)                                   # the first good message fixes N = 3
+    rig.pub.publish(state_msg(0.0, [0.1, float('nan'), 1.0], [1, 1, 1]))
+    rig.pub.publish(state_msg(0.1, [0.1, 0.2], [1, 1], names=NAMES[:2]))
+    rig.pub.publish(state_msg(0.2, [0.1, 0.2, 1.0], [1, 1, 1], names=['a', 'a', 'b']))
+    assert rig.spin_until(lambda: any(
+        kv.key == 'rejected_total' and kv.value == '3'
+        for m in rig.got['diag'] for kv in m.status[0].values), 10)
+    st = rig.got['diag'][-1].status[0]
+    assert st.level == b'\x01' and 'many rejected samples' in st.message
+    assert len(rig.got['force']) == 1
+
+
+def test_services(rig, tmp_path):
+    path = str(tmp_path / 'model.npz')
+    est = rig.start_estimator(FAST)
+    r = rig.call('/dgp_estimator/refit')
+    assert not r.success and 'not enough samples' in r.message
+    r = rig.call('/dgp_estimator/save_model')
+    assert not r.success and 'model_path' in r.message
+    feed(rig, 12)
+    assert est.estimator.wait_for_refit(120)
+    r = rig.call('/dgp_estimator/refit')
+    assert r.success, r.message
+    assert est.estimator.wait_for_refit(120)
+    assert est.estimator.diagnostics()['refits_ok'] == 2
+    res = est.set_parameters([Parameter('model_path', value=path)])
+    assert res[0].successful, res[0].reason
+    r = rig.call('/dgp_estimator/save_model')
+    assert r.success and os.path.exists(path), r.message
+    r = rig.call('/dgp_estimator/reset')
+    assert r.success
+    assert est.estimator.diagnostics()['buffer_fill'] == 0 and not est.estimator.trained
+
+
+def test_invalid_parameters_rejected_with_reason(rig):
+    est = rig.start_estimator(FAST)
+    cases = [('model', 'gpytorch', 'model'), ('passivity', 'maybe', 'passivity'),
+             ('min_samples', 500, 'buffer_size'), ('buffer_size', 1, 'buffer_size'),
+             ('selection_min_distance', -1.0, 'selection_min_distance'),
+             ('joints', ['a', 'a'], 'unique'), ('diagnostics_period_s', 0.0, 'diagnostics'),
+             ('refit_mode', 'later', 'refit_mode')]
+    for name, value, word in cases:
+        res = est.set_parameters([Parameter(name, value=value)])
+        assert not res[0].successful, name
+        assert word in res[0].reason, (name, res[0].reason)
+    # wrong type: refused by rclpy (static typing)
+    res = est.set_parameters([Parameter('buffer_size', value='big')])
+    assert not res[0].successful
+    # a valid change is applied to the estimator
+    res = est.set_parameters([Parameter('selection', value='novelty'),
+                              Parameter('selection_min_distance', value=0.2)])
+    assert all(r.successful for r in res)
+    assert est.estimator.config.selection == 'novelty'
+    assert est.estimator.config.selection_min_distance == 0.2
+    res = est.set_parameters([Parameter('joints', value=['beta', 'alpha'])])
+    assert res[0].successful and est.estimator.config.joints == ['beta', 'alpha']
+
+
+def test_invalid_start_parameters_raise(rig):
+    with pytest.raises(ValueError, match='min_samples'):
+        rig.start_estimator(FAST + [Parameter('min_samples', value=100)])
+
+
+def test_save_and_restart_gives_identical_estimates(rig, tmp_path):
+    path = str(tmp_path / 'model.npz')
+    est = rig.start_estimator(FAST + [Parameter('model_path', value=path)])
+    feed(rig, 25)
+    assert est.estimator.wait_for_refit(120) and est.estimator.trained
+    rng = np.random.default_rng(2)
+    Qs = rng.uniform(-2, 2, (100, 3))
+    before = est.estimator.predict(Qs)
+    rig.stop_estimator()                           # saves on shutdown
+    assert os.path.exists(path)
+    est2 = rig.start_estimator(FAST + [Parameter('model_path', value=path)])
+    assert est2.estimator.trained and not est2.estimator.load_error
+    np.testing.assert_array_equal(est2.estimator.predict(Qs), before)
+    # and the restarted node answers at once with the model, not the prior
+    rig.got['force'].clear()
+    feed(rig, 1, t0=50.0)
+    assert rig.got['force'] and est2.estimator._last_est.source == 'model'
+
+
+def test_yaml_defaults_match_config():
+    yaml = pytest.importorskip('yaml')
+    with open(os.path.join(REPO, 'config', 'estimator.yaml')) as f:
+        params = yaml.safe_load(f)['dgp_estimator']['ros__parameters']
+    defaults = dataclasses.asdict(EstimatorConfig())
+    for k, v in params.items():
+        if k == 'diagnostics_period_s':
+            continue
+        assert k in defaults, k
+        assert v == defaults[k], (k, v, defaults[k])
+    missing = set(defaults) - set(params) - {'joints', 'selection_scale'}
+    assert not missing
