@@ -41,6 +41,7 @@ FORMAT_VERSION = 1
 PASSIVITY_MODES = ('none', 'paper', 'certified', 'projected')
 _LOG2PI = math.log(2.0 * math.pi)
 _JITTER_STEPS = (0.0, 1e-10, 1e-8, 1e-6, 1e-4)   # relative to mean(diag K); bounded escalation
+_MIN_NOISE_VAR = 1e-6                             # standardized units (noise std >= 1e-3 RMS)
 
 
 def prior_mean_diag(Qd, Tau) -> np.ndarray:
@@ -86,7 +87,7 @@ def _chol_drop_first(L: np.ndarray) -> np.ndarray:
     (BLAS drot, one call per column).
     """
     x = np.array(L[1:, 0])
-    L2 = np.asfortranarray(L[1:, 1:])
+    L2 = np.asfortranarray(L[1:, 1:])          # columns contiguous: drot works in place
     n = L2.shape[0]
     for k in range(n):
         xk = x[k]
@@ -94,11 +95,8 @@ def _chol_drop_first(L: np.ndarray) -> np.ndarray:
             continue
         lkk = L2[k, k]
         r = math.hypot(lkk, xk)
-        c, s = lkk / r, xk / r
-        a, b = drot(L2[k:, k], x[k:], c, s)
-        L2[k:, k] = a
-        x[k:] = b
-    return np.ascontiguousarray(L2)
+        drot(L2[k:, k], x[k:], lkk / r, xk / r, overwrite_x=1, overwrite_y=1)
+    return L2
 
 
 class _BaseGP:
@@ -326,7 +324,7 @@ class _BaseGP:
         spread = np.where(spread > 1e-6, spread, 1.0)
         per_row = np.array([len(r) for r in self._rows], float)
         log_sf2 = np.array([-math.log(per_row[m]) for m, _ in self._elist])
-        log_ls = np.tile(np.log(spread), (E, 1))
+        log_ls = np.tile(np.log(np.maximum(spread, 1e-2)), (E, 1))
         log_sn2 = np.full(N, math.log(1e-2))
         hp = dict(log_sf2=log_sf2, log_ls=log_ls, log_sn2=log_sn2, sx=sx, sy=sy, mean=mean)
         self._apply_fixed_noise(hp, N)
@@ -343,13 +341,20 @@ class _BaseGP:
     def _bounds(self, X, m):
         spread = np.std(X, axis=0)
         spread = np.where(spread > 1e-6, spread, 1.0)
+        # standardized units: residual RMS 1 and |x| ~ 1, so sf2 ~ 1 and lengthscales of order
+        # the data spread; the absolute floor 1e-2 (1 % of the RMS velocity) keeps a fit on a
+        # short stretch of data from learning lengthscales nothing later can be compared with
         b = []
         for _ in self._rows[m]:
-            b.append((math.log(1e-8), math.log(1e4)))
+            b.append((math.log(1e-8), math.log(1e2)))
         for _ in self._rows[m]:
             for d in range(X.shape[1]):
-                b.append((math.log(0.02 * spread[d]), math.log(1e3 * spread[d])))
-        b.append((math.log(1e-8), math.log(10.0)))
+                lo = max(0.02 * spread[d], 1e-2)
+                b.append((math.log(lo), math.log(max(1e3 * spread[d], 10 * lo))))
+        # noise floor: 1e-3 of the residual RMS. Lower floors let K + sn2 I reach condition
+        # numbers near 1/eps when the data are poorly excited, and O(n^2) updates then amplify
+        # rounding (seen on the first second of an approach).
+        b.append((math.log(_MIN_NOISE_VAR), math.log(10.0)))
         return b
 
     def _optimize(self, Qd, Tau):
@@ -448,8 +453,10 @@ class _BaseGP:
                 c = self._kmat(m, self._X, x)[:, 0]
                 d = self._kdiag(m, x)[0] + math.exp(hp['log_sn2'][m]) + self._jit[m]
                 l = solve_triangular(L, c, lower=True, check_finite=False)
-                dd = d - l @ l
-                dd = max(dd, 1e-12 * d)
+                # the Schur complement of K + (sn2 + jit) I is >= sn2 + jit exactly; clamp the
+                # rounding there instead of letting a near-duplicate sample blow up L^-1
+                floor = math.exp(hp['log_sn2'][m]) + self._jit[m]
+                dd = max(d - l @ l, floor)
                 Ln = np.zeros((n + 1, n + 1))
                 Ln[:n, :n] = L
                 Ln[n, :n] = l
@@ -738,7 +745,7 @@ class _BaseGP:
         res = None
         for k, dom in enumerate(domains):
             (ilo, ihi), (olo, ohi) = dom
-            budget = self.max_boxes if k == 0 else max(self.max_boxes // 4, 500)
+            budget = self.max_boxes
             res = verify_box(self._terms(start), olo, ohi, max_boxes=budget,
                              leaves=self._leaves if after_update else None)
             if res.ok:

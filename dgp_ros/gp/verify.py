@@ -107,6 +107,8 @@ def _d_interval(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray):
     dmax = np.maximum(np.abs(below), np.abs(above))
     dmin *= dmin
     dmax *= dmax
+    dc = c[:, None, :] - X[None, :, :]
+    dc *= dc
     Dlo = np.zeros((B, N, N))
     Dhi = np.zeros((B, N, N))
     idx = np.arange(N)
@@ -126,7 +128,7 @@ def _d_interval(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray):
         nat_lo = f * (e_lo @ ap + e_hi @ an)
         nat_hi = f * (e_hi @ ap + e_lo @ an)
         # centred second-order enclosure
-        d2c = ((c[:, None, :] - X[None, :, :]) ** 2) @ il2          # (B, n)
+        d2c = dc @ il2                                              # (B, n)
         kc = np.exp(-0.5 * d2c) * a                                 # (B, n) weighted
         val = kc.sum(axis=1)
         grad = (kc @ X - c * val[:, None]) * il2                    # (B, N)
