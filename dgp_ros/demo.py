@@ -1,0 +1,391 @@
+"""End-to-end demo: ``python -m dgp_ros.demo`` (scripts/run_demo.sh, the README's main job).
+
+Starts ``sim_bridge`` (JSBSim A320 approach in periodic wind) and the ``dgp_estimator`` as two OS
+processes talking over real DDS (random ROS_DOMAIN_ID, localhost-only discovery), flies the whole
+approach faster than real time, records the measurements and the estimator's answers with a node
+in this process, then prints a summary table (per-output NMSE of the estimate against the measured
+force, fraction of negative estimated dissipated power, refits, certification, latency) and writes
+plots and ``summary.json`` into ``--out`` (default ``out/demo``).
+
+``--synthetic`` replaces sim_bridge by an in-process publisher of a known passive damping law
+(no JSBSim needed; used by the tests). Children are always terminated on exit (SIGINT, then
+SIGTERM, then SIGKILL; on Linux they also die with this process).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from typing import Dict, List, Optional
+
+import numpy as np
+
+OUT_NAMES = ['alpha', 'beta', 'airspeed']
+
+
+def _die_with_parent():                         # runs in the child before exec (Linux only)
+    try:
+        import ctypes
+        ctypes.CDLL('libc.so.6', use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+    except Exception:
+        pass
+
+
+def _spawn(cmd: List[str], env: dict, log_path: str) -> subprocess.Popen:
+    log = open(log_path, 'w')
+    return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
+                            preexec_fn=_die_with_parent if sys.platform.startswith('linux')
+                            else None)
+
+
+def _stop(proc: Optional[subprocess.Popen], name: str, grace: float = 30.0) -> Optional[int]:
+    """SIGINT (clean ROS shutdown, the estimator saves its model), then SIGTERM, then SIGKILL."""
+    if proc is None:
+        return None
+    for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        if proc.poll() is not None:
+            break
+        proc.send_signal(sig)
+        try:
+            proc.wait(wait)
+        except subprocess.TimeoutExpired:
+            print(f'[demo] {name} did not stop on {sig.name}', flush=True)
+    return proc.poll()
+
+
+def _stamp(msg) -> float:
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+class _Recorder:
+    """Subscribes to the measurements and every estimator output; keeps arrival wall times."""
+
+    def __init__(self, node, ns: str = '/dgp_estimator'):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64, Float64MultiArray
+        self.node = node
+        self.meas: Dict[float, tuple] = {}
+        self.est: Dict[float, tuple] = {}
+        self.std: Dict[float, list] = {}
+        self.power: List[float] = []
+        self.n_matrix = 0
+        self.diag = None
+        be = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+        node.create_subscription(JointState, 'generalized_state', self._on_meas, be)
+        node.create_subscription(JointState, ns + '/damping_force', self._on_est, 1000)
+        node.create_subscription(JointState, ns + '/damping_force_stddev', self._on_std, 1000)
+        node.create_subscription(Float64, ns + '/dissipated_power',
+                                 lambda m: self.power.append(m.data), 1000)
+        node.create_subscription(Float64MultiArray, ns + '/damping_matrix', self._on_D, 1000)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 100)
+
+    def _on_meas(self, m):
+        self.meas[_stamp(m)] = (time.perf_counter(), list(m.name), np.array(m.velocity),
+                                np.array(m.effort))
+
+    def _on_est(self, m):
+        self.est[_stamp(m)] = (time.perf_counter(), np.array(m.velocity), np.array(m.effort))
+
+    def _on_std(self, m):
+        self.std[_stamp(m)] = list(m.effort)
+
+    def _on_D(self, m):
+        self.n_matrix += 1
+
+    def _on_diag(self, m):
+        for st in m.status:
+            if 'dgp_estimator' in st.name:
+                self.diag = dict(level=int.from_bytes(st.level, 'little') if isinstance(
+                    st.level, bytes) else int(st.level), message=st.message,
+                    **{kv.key: kv.value for kv in st.values})
+
+
+def _synthetic_publisher(node, rate_hz: float, duration_s: float, rtf: float):
+    """In-process stand-in for sim_bridge: a passive nonlinear D(qd) on an approach-like path."""
+    from sensor_msgs.msg import JointState
+    pub = node.create_publisher(JointState, 'generalized_state', 10)
+    rng = np.random.default_rng(0)
+    state = {'i': 0, 'done': False}
+
+    def tick():
+        i = state['i']
+        t = i / rate_hz
+        if t > duration_s:
+            state['done'] = True
+            return
+        q = np.array([0.08 + 0.05 * np.sin(2 * np.pi * 0.3 * t),
+                      0.1 * np.sin(2 * np.pi * 0.2 * t + 2.0),
+                      92.0 + 5.0 * np.sin(2 * np.pi * 0.1 * t)])
+        D = np.diag([6.0e5 * (1 + 2 * q[0]), 3.0e5 * (1 + q[1] ** 2), 8.0e3])
+        D[2, 0] = 4.0e4
+        D[0, 2] = 4.0e4
+        tau = D @ q + rng.normal(0, 50.0, 3)
+        m = JointState()
+        m.header.stamp.sec = int(t)
+        m.header.stamp.nanosec = int(round((t - int(t)) * 1e9)) % 1_000_000_000
+        m.name = list(OUT_NAMES)
+        m.velocity = q.tolist()
+        m.effort = tau.tolist()
+        pub.publish(m)
+        state['i'] += 1
+
+    period = 1.0 / (rate_hz * rtf) if rtf > 0 else 0.001
+    node.create_timer(period, tick)
+    return state
+
+
+def analyse(rec: _Recorder) -> dict:
+    """Pair measurements and answers by stamp; NMSE, power statistics, latency."""
+    stamps = sorted(set(rec.meas) & set(rec.est))
+    out = dict(measurements=len(rec.meas), answers=len(rec.est), paired=len(stamps),
+               matrices=rec.n_matrix)
+    if not stamps:
+        return out
+    names = rec.meas[stamps[0]][1] or OUT_NAMES
+    tau = np.array([rec.meas[s][3] for s in stamps])
+    qd = np.array([rec.meas[s][2] for s in stamps])
+    tau_hat = np.array([rec.est[s][2] for s in stamps])
+    lat = np.array([rec.est[s][0] - rec.meas[s][0] for s in stamps])
+    var = tau.var(axis=0)
+    var[var == 0] = 1.0
+    nmse = ((tau_hat - tau) ** 2).mean(axis=0) / var
+    half = len(stamps) // 2
+    nmse2 = ((tau_hat[half:] - tau[half:]) ** 2).mean(axis=0) / np.where(
+        tau[half:].var(axis=0) > 0, tau[half:].var(axis=0), 1.0)
+    p_est = np.einsum('ij,ij->i', qd, tau_hat)
+    p_meas = np.einsum('ij,ij->i', qd, tau)
+    powers = np.array(rec.power) if rec.power else p_est
+    out.update(
+        names=list(names), t=np.array(stamps), qd=qd, tau=tau, tau_hat=tau_hat,
+        p_est=p_est, p_meas=p_meas,
+        nmse=dict(zip(names, nmse.tolist())), nmse_second_half=dict(zip(names, nmse2.tolist())),
+        negative_power_fraction=float(np.mean(powers < 0)),
+        negative_power_count=int(np.sum(powers < 0)), power_messages=int(powers.size),
+        measured_negative_power_fraction=float(np.mean(p_meas < 0)),
+        latency_end_to_end_ms=dict(median=float(np.median(lat) * 1e3),
+                                   p99=float(np.percentile(lat, 99) * 1e3)),
+        answered_fraction=len(rec.est) / max(len(rec.meas), 1),
+    )
+    return out
+
+
+def plot(res: dict, out_dir: str) -> List[str]:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    files = []
+    t, tau, tau_hat, names = res['t'], res['tau'], res['tau_hat'], res['names']
+    fig, axes = plt.subplots(len(names), 1, figsize=(10, 2.6 * len(names)), sharex=True)
+    for i, ax in enumerate(np.atleast_1d(axes)):
+        ax.plot(t, tau[:, i], lw=1.0, label='measured')
+        ax.plot(t, tau_hat[:, i], lw=1.0, ls='--', label='D-GP estimate')
+        ax.set_ylabel(f'tau[{names[i]}]')
+        ax.set_title(f'{names[i]}: NMSE {res["nmse"][names[i]]:.3g}', fontsize=9)
+        ax.legend(loc='upper right', fontsize=8)
+    np.atleast_1d(axes)[-1].set_xlabel('simulation time (s)')
+    fig.tight_layout()
+    p = os.path.join(out_dir, 'estimate_vs_measurement.png')
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    files.append(p)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    lo = min(res['p_meas'].min(), res['p_est'].min())
+    hi = max(res['p_meas'].max(), res['p_est'].max())
+    bins = np.linspace(lo, hi, 60) if hi > lo else 10
+    ax.hist(res['p_meas'], bins=bins, alpha=0.55, label='measured  qd^T tau')
+    ax.hist(res['p_est'], bins=bins, alpha=0.55, label='estimated qd^T tau_hat')
+    ax.axvline(0.0, color='k', lw=0.8)
+    ax.set_xlabel('dissipated power (W)')
+    ax.set_ylabel('samples')
+    ax.set_title(f'negative estimated power: {100 * res["negative_power_fraction"]:.2f} % '
+                 f'(measured: {100 * res["measured_negative_power_fraction"]:.2f} %)', fontsize=9)
+    ax.legend()
+    fig.tight_layout()
+    p = os.path.join(out_dir, 'dissipated_power_histogram.png')
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    files.append(p)
+    return files
+
+
+def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
+    print('\n=== dgp_ros demo summary ' + '=' * 50)
+    print(f'wall time {wall_s:.1f} s; measurements {res["measurements"]}, answers '
+          f'{res["answers"]} ({100 * res.get("answered_fraction", 0):.1f} %), paired '
+          f'{res["paired"]}, damping matrices {res["matrices"]}')
+    if 'nmse' in res:
+        print(f'{"output":<12}{"NMSE (run)":>14}{"NMSE (2nd half)":>18}')
+        for n in res['names']:
+            print(f'{n:<12}{res["nmse"][n]:>14.4g}{res["nmse_second_half"][n]:>18.4g}')
+        print(f'negative estimated dissipated power: {res["negative_power_count"]} of '
+              f'{res["power_messages"]} ({100 * res["negative_power_fraction"]:.3f} %); measured: '
+              f'{100 * res["measured_negative_power_fraction"]:.2f} %')
+        lat = res['latency_end_to_end_ms']
+        print(f'end-to-end latency (measurement -> answer, via DDS): median {lat["median"]:.2f} '
+              f'ms, p99 {lat["p99"]:.2f} ms')
+    if diag:
+        def g(k, f=str):
+            try:
+                return f(diag.get(k, ''))
+            except (TypeError, ValueError):
+                return diag.get(k, '')
+        print(f'estimator processing latency: median {1e3 * g("latency_median_s", float):.2f} ms, '
+              f'p99 {1e3 * g("latency_p99_s", float):.2f} ms')
+        print(f'refits ok {diag.get("refits_ok")}, failed {diag.get("refits_failed")}, last '
+              f'duration {g("last_refit_duration_s", float):.2f} s; certified '
+              f'{diag.get("certified")} ({diag.get("method")}, margin {diag.get("margin")}); '
+              f'buffer {diag.get("buffer_fill")}/{diag.get("buffer_size")}, skipped '
+              f'(near-duplicates) {diag.get("samples_skipped")}, rejected '
+              f'{diag.get("rejected_total")}, passivity fallbacks '
+              f'{diag.get("passivity_fallbacks")}')
+        print(f'status: {["OK", "WARN", "ERROR", "STALE"][min(int(diag["level"]), 3)]}: '
+              f'{diag.get("message")}')
+    print('=' * 76, flush=True)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog='dgp-demo', description=__doc__.split('\n\n')[0])
+    ap.add_argument('--out', default='out/demo', help='output folder (plots, summary.json, logs)')
+    ap.add_argument('--rate-hz', type=float, default=60.0, help='simulation output rate')
+    ap.add_argument('--real-time-factor', type=float, default=3.0,
+                    help='simulated s per wall s (0 = as fast as possible)')
+    ap.add_argument('--max-sim-time', type=float, default=0.0,
+                    help='stop the approach after this many simulated s (0 = to touch-down)')
+    ap.add_argument('--model', default='full', choices=['full', 'diag', 'ard'])
+    ap.add_argument('--passivity', default='projected',
+                    choices=['none', 'paper', 'certified', 'projected'])
+    ap.add_argument('--buffer-size', type=int, default=200)
+    ap.add_argument('--refit-period', type=float, default=10.0, help='simulated s between refits')
+    ap.add_argument('--synthetic', action='store_true',
+                    help='in-process synthetic publisher instead of sim_bridge (no JSBSim)')
+    ap.add_argument('--duration', type=float, default=30.0, help='--synthetic: simulated s')
+    ap.add_argument('--timeout', type=float, default=900.0, help='wall-clock limit (s)')
+    args = ap.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 101))
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env.pop('ROS_LOCALHOST_ONLY', None)
+    env.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    env['PYTHONUNBUFFERED'] = '1'
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
+                                           'RMW_IMPLEMENTATION')})
+    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    print(f'[demo] ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]} (localhost only); output in {args.out}',
+          flush=True)
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    est_cmd = [sys.executable, '-m', 'dgp_ros.estimator_node', '--ros-args',
+               '-p', f'model:={args.model}', '-p', f'passivity:={args.passivity}',
+               '-p', f'buffer_size:={args.buffer_size}',
+               '-p', f'refit_period_s:={float(args.refit_period)}',
+               '-p', 'diagnostics_period_s:=0.5']
+    sim_cmd = [sys.executable, '-m', 'sim_bridge.node', '--ros-args',
+               '-p', f'rate_hz:={float(args.rate_hz)}',
+               '-p', f'real_time_factor:={float(args.real_time_factor)}',
+               '-p', 'loop:=false', '-p', f'max_sim_time_s:={float(args.max_sim_time)}']
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = ex = est_proc = sim_proc = None
+    code = 0
+    t_start = time.monotonic()
+    try:
+        node = rclpy.create_node('dgp_demo_recorder', context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        rec = _Recorder(node)
+        est_proc = _spawn(est_cmd, env, os.path.join(args.out, 'estimator.log'))
+        print(f'[demo] started estimator (pid {est_proc.pid}): model={args.model} '
+              f'passivity={args.passivity} buffer={args.buffer_size}', flush=True)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and \
+                node.count_publishers('/dgp_estimator/damping_force') < 1:
+            ex.spin_once(timeout_sec=0.1)
+            if est_proc.poll() is not None:
+                raise RuntimeError(f'estimator exited with {est_proc.returncode}; see '
+                                   f'{args.out}/estimator.log')
+        if node.count_publishers('/dgp_estimator/damping_force') < 1:
+            raise RuntimeError('estimator did not come up within 60 s')
+        if args.synthetic:
+            syn = _synthetic_publisher(node, args.rate_hz, args.duration, args.real_time_factor)
+            finished = lambda: syn['done']  # noqa: E731
+            print(f'[demo] synthetic publisher: {args.duration:.0f} s at {args.rate_hz:g} Hz',
+                  flush=True)
+        else:
+            sim_proc = _spawn(sim_cmd, env, os.path.join(args.out, 'sim_bridge.log'))
+            finished = lambda: sim_proc.poll() is not None  # noqa: E731
+            print(f'[demo] started sim_bridge (pid {sim_proc.pid}): A320 approach at '
+                  f'{args.rate_hz:g} Hz, real-time factor {args.real_time_factor:g}', flush=True)
+        last_print = 0.0
+        while not finished():
+            ex.spin_once(timeout_sec=0.05)
+            now = time.monotonic()
+            if now - t_start > args.timeout:
+                raise RuntimeError(f'timeout after {args.timeout:.0f} s')
+            if est_proc.poll() is not None:
+                raise RuntimeError(f'estimator died ({est_proc.returncode}); see estimator.log')
+            if now - last_print >= 2.0:
+                last_print = now
+                ts = max(rec.meas) if rec.meas else 0.0
+                d = rec.diag or {}
+                print(f'[demo] t_sim {ts:6.1f} s | measurements {len(rec.meas):5d} | answers '
+                      f'{len(rec.est):5d} | buffer {d.get("buffer_fill", "-")} | refits '
+                      f'{d.get("refits_ok", "-")} | {d.get("message", "waiting for diagnostics")}',
+                      flush=True)
+        if sim_proc is not None and sim_proc.returncode not in (0, None):
+            print(f'[demo] sim_bridge exited with {sim_proc.returncode}; see sim_bridge.log',
+                  flush=True)
+            code = 1
+        # let the last answers and a final /diagnostics arrive
+        end = time.monotonic() + 2.0
+        n_diag_before = id(rec.diag)
+        while time.monotonic() < end or (id(rec.diag) == n_diag_before and
+                                         time.monotonic() < end + 3.0):
+            ex.spin_once(timeout_sec=0.05)
+        wall = time.monotonic() - t_start
+        res = analyse(rec)
+        print_summary(res, rec.diag, wall)
+        if res.get('paired', 0) == 0:
+            print('[demo] no estimates were received', flush=True)
+            code = 1
+        else:
+            files = plot(res, args.out)
+            summary = {k: v for k, v in res.items() if not isinstance(v, np.ndarray)}
+            summary['diagnostics'] = rec.diag
+            summary['wall_time_s'] = wall
+            summary['args'] = vars(args)
+            with open(os.path.join(args.out, 'summary.json'), 'w') as f:
+                json.dump(summary, f, indent=2, default=str)
+            print('[demo] wrote ' + ', '.join(files + [os.path.join(args.out, 'summary.json')]),
+                  flush=True)
+    except KeyboardInterrupt:
+        print('[demo] interrupted', flush=True)
+        code = 130
+    except RuntimeError as exc:
+        print(f'[demo] error: {exc}', flush=True)
+        code = 1
+    finally:
+        _stop(sim_proc, 'sim_bridge', grace=10.0)
+        rc = _stop(est_proc, 'estimator', grace=30.0)
+        if rc not in (0, None, -signal.SIGINT):
+            print(f'[demo] estimator exit status {rc}', flush=True)
+        if ex is not None:
+            ex.shutdown()
+        if node is not None:
+            node.destroy_node()
+        ctx.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
