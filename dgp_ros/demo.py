@@ -254,7 +254,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='dgp-demo', description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', default='out/demo', help='output folder (plots, summary.json, logs)')
     ap.add_argument('--rate-hz', type=float, default=60.0, help='simulation output rate')
-    ap.add_argument('--real-time-factor', type=float, default=3.0,
+    ap.add_argument('--real-time-factor', type=float, default=2.0,
                     help='simulated s per wall s (0 = as fast as possible)')
     ap.add_argument('--max-sim-time', type=float, default=0.0,
                     help='stop the approach after this many simulated s (0 = to touch-down)')

@@ -234,8 +234,9 @@ class EstimatorNode(Node):
         return response
 
     def shutdown(self) -> None:
-        """Wait (bounded) for a running refit, then save the model if model_path is set."""
-        self.estimator.close(timeout=30.0)
+        """Save the current model if model_path is set. A refit still running is not waited
+        for beyond a moment (its thread is a daemon; the current model is the one saved)."""
+        self.estimator.close(timeout=2.0)
         if self.estimator.config.model_path and self.estimator.trained:
             try:
                 path = self.estimator.save()
