@@ -31,7 +31,7 @@ class Certificate:
     certified: True when ``q^T D(q) q >= 0`` is proven for every ``q`` (for ``projected``: every
         published estimate, pointwise).
     margin: normalized slack of the proof (>= 0 when certified; dimensionless, see ``method``).
-    method: which proof: 'paper-theorem1', 'a-posteriori-L1', 'domain-bnb+blend', 'projection',
+    method: which proof: 'paper-theorem1', 'a-posteriori-bound', 'domain-bnb+blend', 'projection',
         'prior-only', 'none'.
     domain: ``(lo, hi)`` arrays, (N,) each, in the model's input units, of the box on which the
         GP correction itself is verified; ``None`` when the proof holds on all of R^N without it.

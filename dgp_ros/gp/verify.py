@@ -50,6 +50,17 @@ class CorrectionTerms:
     sx: np.ndarray
     sy: np.ndarray
     D_fn: Callable[[np.ndarray], np.ndarray]
+    rkhs: Optional[np.ndarray] = None   # (E,) sqrt(a^T E_e a), E_e = exp(-|x_i - x_j|^2_l / 2)
+
+    def __post_init__(self):
+        if self.rkhs is None:
+            from .kernels import se_ard
+            r = np.zeros(len(self.elems))
+            for e in range(len(self.elems)):
+                a = self.coef[e]
+                if self.sf2[e] > 0 and np.any(a):
+                    r[e] = np.sqrt(max(float(a @ se_ard(self.X, self.X, self.ls[e], 1.0) @ a), 0.0))
+            self.rkhs = r
 
 
 @dataclass
@@ -90,9 +101,10 @@ def _d_interval(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray):
     - second-order centred: exact value and gradient at the box centre ``c`` plus a Hessian
       bound, using ``|d2 k / dx_d dx_e| <= sf2 (1 + r^2) exp(-r^2/2) / (l_d l_e)`` and that
       ``(1 + r^2) exp(-r^2/2)`` decreases for ``r >= 1`` (max ``2 e^-1/2`` at ``r = 1``), with ``r``
-      the scaled distance from the box to the training point. The remainder shrinks with the
-      square of the box width, so alternating-sign GP weights (large ``|alpha|``) cost far fewer
-      boxes than the natural enclosure alone.
+      the scaled distance from the box to the training point, or, whichever is smaller, the RKHS
+      bound ``|d2 g| <= sqrt(3) |g|_H sqrt(sf2) / (l_d l_e)`` with ``|g|_H^2 = a^T K_e a``, which
+      sees the cancellation of alternating-sign GP weights. The remainder shrinks with the square
+      of the box width.
     """
     B, N = lo.shape
     bl = lo / T.sx
@@ -133,7 +145,9 @@ def _d_interval(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray):
         val = kc.sum(axis=1)
         grad = (kc @ X - c * val[:, None]) * il2                    # (B, N)
         phi = np.where(smin >= 1.0, (1.0 + smin) * np.exp(-0.5 * smin), 2.0 * np.exp(-0.5))
-        s_abs = phi @ np.abs(a)                                     # (B,)
+        # Hessian bound: local sum of |a_i| or, exploiting cancellation, the RKHS norm
+        # (|d2 g| <= |g|_H sqrt(d2 d2' k(x, x)) <= sqrt(3) |g|_H sqrt(sf2) / (l_d l_e))
+        s_abs = np.minimum(phi @ np.abs(a), np.sqrt(3.0) * T.rkhs[e])   # (B,)
         hl = h / T.ls[e]                                            # (B, N) half-widths / l
         rem = 0.5 * s_abs * hl.sum(axis=1) ** 2
         lin = (np.abs(grad) * h).sum(axis=1)
