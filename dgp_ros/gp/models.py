@@ -134,7 +134,7 @@ class _BaseGP:
 
     def __init__(self, passivity: str = 'none', noise=None, window: Optional[int] = None,
                  n_restarts: int = 2, max_opt_samples: int = 300, domain_margin: float = 0.1,
-                 blend_width: float = 0.1, max_boxes: int = 200000, projection_weights=None,
+                 blend_width: float = 0.1, max_boxes: int = 50000, projection_weights=None,
                  hyperparams: Optional[dict] = None, random_state: int = 0):
         if passivity not in PASSIVITY_MODES:
             raise ValueError(f'passivity must be one of {PASSIVITY_MODES}, got {passivity!r}')
