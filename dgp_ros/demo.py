@@ -206,7 +206,7 @@ def plot(res: dict, out_dir: str) -> List[str]:
     ax.set_ylabel('samples')
     ax.set_title(f'negative estimated power: {100 * res["negative_power_fraction"]:.2f} % '
                  f'(measured: {100 * res["measured_negative_power_fraction"]:.2f} %)', fontsize=9)
-    ax.legend()
+    ax.legend(loc='upper right')
     fig.tight_layout()
     p = os.path.join(out_dir, 'dissipated_power_histogram.png')
     fig.savefig(p, dpi=110)
