@@ -137,10 +137,6 @@ def test_good_file_round_trip_and_format_version(saved):
     np.testing.assert_array_equal(load_model(p).predict(Q), m.predict(Q))
 
 
-@pytest.mark.xfail(strict=True, reason='BUG: models.py save()/load_model(): the sha256 digest '
-                   'covers the arrays only, not the JSON header, so a tampered header (scale, '
-                   'certificate, params, stale) loads silently: predictions change and a '
-                   "forged 'certified' passes OnlineEstimator's certificate check")
 @pytest.mark.parametrize('field', ['scale', 'certificate', 'params'])
 def test_tampered_header_is_detected(saved, tmp_path, field):
     a = _arrays(saved[1])

@@ -126,11 +126,6 @@ def test_core_ill_conditioned_kernels(case, kind, passivity):
         _check_model(m, passivity, _queries())
 
 
-@pytest.mark.xfail(strict=True, reason='BUG: models.py _chol_jitter/_factorize use '
-                   'cholesky(check_finite=False) and _hp_from_dict only checks the log values: '
-                   'log_ls=-400 (exp overflow) or sx=0 give a NaN kernel, fit() succeeds '
-                   'silently, jitter_ is NaN and predict() returns NaN while certificate() '
-                   'still says certified')
 @pytest.mark.parametrize('mod', [dict(log_ls=-400.0), dict(sx=0.0)], ids=['ls_e-400', 'sx0'])
 def test_core_overflowing_hyperparams_give_clear_error_not_nan(mod):
     Q, T = _data()

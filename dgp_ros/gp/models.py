@@ -211,6 +211,15 @@ class _BaseGP:
             bad = np.isnan(v) | (v == np.inf) | ((v == -np.inf) & (k != 'log_sf2'))
             if np.any(bad):
                 raise ValueError(f'hyperparams[{k!r}] has non-finite values')
+        for k in ('sx', 'sy'):
+            if np.any(hp[k] <= 0):
+                raise ValueError(f'hyperparams[{k!r}] must be positive scales, got {hp[k]}')
+        # exp() of these must neither overflow nor vanish (a kernel of NaN or of zeros)
+        for k, lim in (('log_ls', 300.0), ('log_sf2', 300.0), ('log_sn2', 300.0)):
+            v = hp[k][np.isfinite(hp[k])]
+            if np.any(np.abs(v) > lim):
+                raise ValueError(f'hyperparams[{k!r}] out of range (|value| > {lim:g}): '
+                                 f'exp() would overflow or underflow')
         return hp
 
     # ------------------------------------------------------------------ structure helpers
@@ -425,6 +434,9 @@ class _BaseGP:
         for m in range(self.N):
             K = self._kmat(m, X, X)
             K[np.diag_indices(n)] += math.exp(self._hp['log_sn2'][m])
+            if not np.all(np.isfinite(K)):
+                raise ValueError(f'kernel matrix of output {m} is not finite: hyper-parameters '
+                                 f'or inputs out of range')
             L, j = _chol_jitter(K)
             self._L.append(L)
             self._jit[m] = j
@@ -835,12 +847,12 @@ class _BaseGP:
         arrays.update(dom_ilo=ilo, dom_ihi=ihi, dom_olo=olo, dom_ohi=ohi)
         if self._leaves is not None:
             arrays['leaves_lo'], arrays['leaves_hi'] = self._leaves
-        digest = _digest(arrays)
         params = self.get_params()
         params['hyperparams'] = None
         header = {'format': 'dgp_ros.gp', 'format_version': FORMAT_VERSION, 'kind': self._kind,
                   'N': self.N, 'params': params, 'scale': self._scale, 'stale': bool(self._stale),
-                  'certificate': self._cert.to_dict(), 'sha256': digest}
+                  'certificate': self._cert.to_dict()}
+        header['sha256'] = _digest(arrays, header)
         arrays['header'] = np.array(json.dumps(header))
         path = os.fspath(path)
         d = os.path.dirname(os.path.abspath(path))
@@ -907,8 +919,11 @@ class _LmlObjective:
         return float(nll), g
 
 
-def _digest(arrays: dict) -> str:
+def _digest(arrays: dict, header: dict) -> str:
+    """SHA-256 over every array (name, dtype, shape, bytes) and the header (minus the digest)."""
     h = hashlib.sha256()
+    h.update(json.dumps({k: v for k, v in header.items() if k != 'sha256'},
+                        sort_keys=True).encode())
     for k in sorted(arrays):
         a = np.ascontiguousarray(arrays[k])
         h.update(k.encode())
@@ -972,7 +987,7 @@ def load_model(path) -> _BaseGP:
         raise ValueError(f'{path}: model format version {header.get("format_version")} is not '
                          f'supported by this dgp_ros (expects {FORMAT_VERSION}); refit and save '
                          f'again')
-    if _digest(arrays) != header.get('sha256'):
+    if _digest(arrays, header) != header.get('sha256'):
         raise ValueError(f'{path}: checksum mismatch: the model file was modified or damaged')
     kind = header.get('kind')
     if kind not in _KINDS:
