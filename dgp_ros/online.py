@@ -95,7 +95,7 @@ PASSIVITY_MODES = ('none', 'paper', 'certified', 'projected')
 SELECTION_POLICIES = ('all', 'novelty')
 REFIT_MODES = ('async', 'sync')
 # Reasons a message can be rejected for (diagnostics()['rejected'] has one count per reason).
-REJECT_REASONS = ('empty', 'length_mismatch', 'duplicate_name', 'missing_joint',
+REJECT_REASONS = ('empty', 'length_mismatch', 'bad_names', 'duplicate_name', 'missing_joint',
                   'dimension_mismatch', 'non_finite', 'out_of_range', 'bad_stamp')
 # Status levels (the values of diagnostic_msgs/DiagnosticStatus OK/WARN/ERROR).
 OK, WARN, ERROR = 0, 1, 2
@@ -283,7 +283,9 @@ class OnlineEstimator:
         self._N: Optional[int] = len(self.config.joints) or None
         self._buf: Optional[_Buffer] = None
         self._sample_seq = 0              # accepted samples ever added (for refit replay)
-        self._pending: deque = deque()    # (seq, qd, tau) added while a refit runs
+        # (seq, qd, tau) added while a refit runs; only the newest buffer_size can survive the
+        # model's window, so older ones are dropped here instead of being replayed
+        self._pending: deque = deque(maxlen=self.config.buffer_size)
         self._model = None
         self._m_d: Optional[np.ndarray] = None
         self._m_d_dirty = True
@@ -328,13 +330,18 @@ class OnlineEstimator:
             e = np.asarray(effort, dtype=float).ravel()
         except (TypeError, ValueError):
             return 'non_finite'
-        names = list(names) if names is not None else []
+        try:
+            names = list(names) if names is not None else []
+            if len(set(names)) != len(names):
+                return 'duplicate_name'
+        except TypeError:                      # not iterable, or unhashable entries
+            return 'bad_names'
+        if not all(isinstance(n, str) for n in names):
+            return 'bad_names'
         if v.size == 0 or e.size == 0:
             return 'empty'
         if v.size != e.size or (names and len(names) != v.size):
             return 'length_mismatch'
-        if names and len(set(names)) != len(names):
-            return 'duplicate_name'
         if self._names is not None and names:
             pos = {n: i for i, n in enumerate(names)}
             try:
@@ -363,14 +370,14 @@ class OnlineEstimator:
             self.messages_received += 1
             try:
                 stamp = float(stamp_s)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 stamp = float('nan')
-            if not math.isfinite(stamp):
-                self._reject('bad_stamp')
-                return None
             sel = self._select(names, velocity, effort)
-            if isinstance(sel, str):
+            if isinstance(sel, str):            # content problems are reported first
                 self._reject(sel)
+                return None
+            if not math.isfinite(stamp) or stamp < 0.0:     # before the epoch / sim start
+                self._reject('bad_stamp')
                 return None
             names, qd, tau = sel
             self._recent_ok.append(True)
