@@ -1,0 +1,118 @@
+"""Smoke test of the benchmark scripts: every ``bench/*.py --quick`` runs into a tmp dir.
+
+Checks exit status, that the script's section(s) of BENCHMARKS.md and its plots were written, and
+that the numbers are sane (finite NMSE, 0 negative-power points for the guaranteed modes). Speed
+targets are benchmark figures, never asserted here.
+"""
+import math
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BENCH = os.path.join(REPO, 'bench')
+sys.path.insert(0, BENCH)
+
+TIMEOUT = 600   # generous: the CI machine may be shared; the quick runs take well under that
+
+
+def run(script, out):
+    r = subprocess.run([sys.executable, os.path.join(BENCH, script), '--quick', '--out', str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT)
+    assert r.returncode == 0, f'{script} failed:\n{r.stderr[-4000:]}'
+    assert r.stdout == '', 'progress belongs on stderr'
+    return r
+
+
+def section(out, name):
+    import common
+    s = common.read_section(str(out), name)
+    assert s is not None, f'section {name} missing'
+    assert 'quick mode' in s and 'Machine:' in s
+    return s
+
+
+def table_rows(text, first_cells):
+    """Rows of markdown tables whose first cells match (e.g. ('Full-D-GP', 'certified'))."""
+    rows = []
+    for line in text.splitlines():
+        if not line.startswith('|'):
+            continue
+        cells = [c.strip() for c in line.strip('|').split('|')]
+        if tuple(cells[:len(first_cells)]) == tuple(first_cells):
+            rows.append(cells)
+    return rows
+
+
+def numbers(cell):
+    return [float(x) for x in re.findall(r'[-+]?(?:\d+\.?\d*|\.\d+)(?:e[-+]?\d+)?|nan|inf', cell)]
+
+
+def test_common_write_section_replaces_only_its_block(tmp_path):
+    import common
+    common.write_section(str(tmp_path), 'a', 'first A')
+    common.write_section(str(tmp_path), 'b', 'only B')
+    common.write_section(str(tmp_path), 'a', 'second A')
+    text = (tmp_path / 'BENCHMARKS.md').read_text()
+    assert 'second A' in text and 'first A' not in text and 'only B' in text
+    assert text.count('<!-- BEGIN a -->') == 1 and text.count('<!-- END b -->') == 1
+    assert text.index('second A') < text.index('only B')
+
+
+def test_synthetic_friction_quick(tmp_path):
+    run('synthetic_friction.py', tmp_path)
+    s = section(tmp_path, 'synthetic_friction')
+    assert (tmp_path / 'bench' / 'synthetic_nmse_vs_n.png').stat().st_size > 1000
+    for kind in ('ARD-GP', 'Diag-D-GP', 'Full-D-GP'):
+        rows = table_rows(s, (kind, 'none'))
+        assert rows, kind
+        nm = numbers(' '.join(rows[0][2:]))
+        assert nm and all(math.isfinite(x) and 0 <= x < 10 for x in nm), rows[0]
+    # passivity table: guaranteed modes have 0 negative-power points inside and far outside
+    for kind, mode in (('Diag-D-GP', 'paper'), ('Diag-D-GP', 'certified'),
+                       ('Diag-D-GP', 'projected'), ('Full-D-GP', 'paper'),
+                       ('Full-D-GP', 'certified'), ('Full-D-GP', 'projected'),
+                       ('ARD-GP', 'projected')):
+        rows = [r for r in table_rows(s, (kind, mode)) if len(r) >= 6 and r[2].isdigit()]
+        assert rows, (kind, mode)
+        assert rows[0][2] == '0' and rows[0][3] == '0', rows[0]
+
+
+def test_paper_experiments_quick(tmp_path):
+    run('paper_experiments.py', tmp_path)
+    a = section(tmp_path, 'paper_trajectory')
+    assert 'Their aircraft model is not ours' in a
+    assert '-7.83e-04' in a and '0.175' in a
+    for kind, mode in (('Full-D-GP', 'none'), ('Diag-D-GP', 'none'), ('ARD-GP', 'none')):
+        r = table_rows(a, (kind, mode))[0]
+        nm = numbers(' '.join(r[2:5]))
+        assert all(math.isfinite(x) and x >= 0 for x in nm), r
+    b = section(tmp_path, 'paper_data_efficiency')
+    assert 'NMSE -side' in b
+    c = section(tmp_path, 'paper_passivity')
+    for kind, mode in (('Diag-D-GP', 'paper'), ('Diag-D-GP', 'certified'),
+                       ('Full-D-GP', 'paper'), ('Full-D-GP', 'certified'),
+                       ('Full-D-GP', 'projected'), ('ARD-GP', 'projected')):
+        for r in table_rows(c, (kind, mode)):
+            assert r[2] == '0' and r[3] == '0', r        # neg inside, neg far
+    section(tmp_path, 'passivity_modes')
+    for png in ('paper_trajectory.png', 'paper_data_efficiency.png', 'paper_power.png'):
+        assert (tmp_path / 'bench' / png).stat().st_size > 1000
+
+
+def test_speed_quick(tmp_path):
+    run('speed.py', tmp_path)
+    s = section(tmp_path, 'speed')
+    assert (tmp_path / 'bench' / 'speed.png').stat().st_size > 1000
+    assert '### Targets' in s
+    targets = [r for r in table_rows(s, ()) if len(r) == 3 and r[1] in ('met', '**missed**')]
+    assert len(targets) >= 5
+    # sklearn and ARD-GP are the same model: predictions must agree
+    m = re.search(r'agree with ARD-GP to ([0-9.e+-]+)', s)
+    assert m and float(m.group(1)) < 1e-6
+    rows = table_rows(s, ('full', 'projected', 'all'))
+    assert rows and float(rows[0][4]) > 0                      # msg/s
+    assert rows[0][9] == '0'                                   # no passivity fallbacks
