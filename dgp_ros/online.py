@@ -392,7 +392,8 @@ class OnlineEstimator:
 
             added = self._maybe_add(qd, tau)
             start_thread = self._maybe_trigger_refit(stamp)
-            if not start_thread and self._is_stale() and not self._refit_running():
+            if not start_thread and self._is_stale() and not self._refit_running() and \
+                    self._recertify_due(stamp):
                 start_thread = 'recertify'
             est = self._estimate(stamp, list(names) if names else [], qd, tau, added)
             est.processing_time_s = time.perf_counter() - t0
@@ -682,6 +683,17 @@ class OnlineEstimator:
         if cert.certified:
             return True, ''
         return False, f'certificate does not hold (margin {cert.margin:.3g}, {cert.method})'
+
+    def _recertify_due(self, stamp: float) -> bool:
+        """A stale model stays passive pointwise, so re-proving it on every sample would only
+        burn CPU: re-prove at most every ``refit_period_s / 4`` of stamp time (0.25 s if the
+        period is 0)."""
+        gap = self.config.refit_period_s / 4.0 if self.config.refit_period_s > 0 else 0.25
+        last = getattr(self, '_last_recert_stamp', None)
+        if last is not None and stamp >= last and stamp - last < gap:
+            return False
+        self._last_recert_stamp = stamp
+        return True
 
     def _is_stale(self) -> bool:
         return self._model is not None and bool(getattr(self._model, 'certificate_stale', False))
