@@ -32,13 +32,16 @@ is returned as an :class:`Estimate`: ``qd``, ``tau`` (measured), ``tau_hat``, ``
 
 Default passivity: 'projected'
 ------------------------------
-Measured on synthetic passive data (test_online, buffer 50): 'projected' and 'none' reach the same
-NMSE (~1e-3) because the projection never moves a passive estimate, and it makes
-``qd^T tau_hat >= 0`` exact at every query for microseconds. 'certified' (structural certificate)
-had to shrink the GP correction to prove it (NMSE 0.1-0.3, about 100x worse) and almost every
-``update`` left the certificate stale, costing a re-proof (ms..s) per sample; 'paper' is more
-conservative still. So the node defaults to 'projected'; 'certified' stays available when a
-model-level (not only pointwise) guarantee is wanted.
+From docs/BENCHMARKS.md and docs/PASSIVITY.md: in *batch* fits the structural 'certified' mode now
+matches the unconstrained Full-D-GP on the A320 (trajectory protocol and volume n = 50..500, ratio
+1.0, 0 violations), and 'projected' matches it by construction. *Online* they differ (the demo,
+A320 approach, full model, buffer 200, measured 2026-11-22): 'projected' NMSE 0.022 / 1e-7 / 1.7e-4
+(drag / -side / lift) with 6 refits of 0.01-0.5 s; 'certified' 0.23 / 3e-4 / 0.048 offline in sync
+mode, because every update that leaves the proven domain makes the certificate stale and each
+re-proof is a refit with branch-and-bound (0.5-3 s at n = 200) that competes with the message path
+for the CPU. Both never published a negative power. So the node defaults to 'projected' (exact
+``qd^T tau_hat >= 0`` for every published estimate, microseconds, never less accurate where the
+truth is passive); choose 'certified' when a controller needs the damping matrix itself certified.
 
 Behaviour
 ---------
@@ -394,7 +397,10 @@ class OnlineEstimator:
             start_thread = self._maybe_trigger_refit(stamp)
             if not start_thread and self._is_stale() and not self._refit_running() and \
                     self._recertify_due(stamp):
-                start_thread = 'recertify'
+                # a refit at fixed hyper-parameters on the current buffer: it re-derives the
+                # verified domain from the data the model now holds (a re-proof of the old
+                # model would keep the domain of the data it was first fitted on)
+                start_thread = 'fit'
             est = self._estimate(stamp, list(names) if names else [], qd, tau, added)
             est.processing_time_s = time.perf_counter() - t0
             self._latencies.append(est.processing_time_s)
@@ -686,8 +692,8 @@ class OnlineEstimator:
 
     def _recertify_due(self, stamp: float) -> bool:
         """A stale model stays passive pointwise, so re-proving it on every sample would only
-        burn CPU: re-prove at most every ``refit_period_s / 4`` of stamp time (0.25 s if the
-        period is 0)."""
+        burn CPU: re-prove (by a refit at fixed hyper-parameters) at most every
+        ``refit_period_s / 4`` of stamp time (0.25 s if the period is 0)."""
         gap = self.config.refit_period_s / 4.0 if self.config.refit_period_s > 0 else 0.25
         last = getattr(self, '_last_recert_stamp', None)
         if last is not None and stamp >= last and stamp - last < gap:

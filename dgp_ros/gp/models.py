@@ -198,7 +198,8 @@ class _BaseGP:
         return self
 
     _FITTED_STATE = ('N', '_elist', '_rows', '_X', '_R', '_L', '_alpha', '_jit', '_fitted',
-                     '_cert', '_stale', '_scale', '_domain', '_leaves', 'jitter_', 'fit_info_')
+                     '_cert', '_stale', '_scale', '_domain', '_data_box', '_leaves', 'jitter_',
+                     'fit_info_')
 
     @staticmethod
     def _hp_from_dict(d: dict) -> dict:
@@ -484,6 +485,8 @@ class _BaseGP:
         self._alpha = np.column_stack([
             cho_solve((self._L[m], True), self._R[:, m], check_finite=False)
             for m in range(self.N)])
+        if self.passivity == 'certified':
+            self._grow_domain(Q)
         self._enforce(after_update=True)
         return self
 
@@ -721,6 +724,19 @@ class _BaseGP:
         return CorrectionTerms(self._X, self._elist, np.exp(hp['log_sf2']), np.exp(hp['log_ls']),
                                coef, hp['mean'], hp['sx'], hp['sy'],
                                lambda Q: self._damping_unprojected(Q, np.full(Q.shape[0], scale)))
+
+    def _grow_domain(self, Q):
+        """Samples outside the verified box would only ever see the prior mean: grow the domain
+        to the data the model now holds and mark the certificate stale (predictions stay passive
+        pointwise until the next proof on the grown domain)."""
+        (ilo, ihi), _ = self._domain
+        if np.all((Q >= ilo) & (Q <= ihi)):
+            return
+        self._data_box = self._box_of(self.X_train_)
+        self._domain = self._make_domain(self._data_box, self.domain_margin, self.blend_width)
+        self._leaves = None
+        if self._cert is not None and self._cert.method == 'domain-bnb+blend':
+            self._stale = True
 
     @staticmethod
     def _box_of(Qd):
@@ -1003,6 +1019,7 @@ def load_model(path) -> _BaseGP:
     model._domain = ((arrays['dom_ilo'], arrays['dom_ihi']), (arrays['dom_olo'], arrays['dom_ohi']))
     model._leaves = ((arrays['leaves_lo'], arrays['leaves_hi']) if 'leaves_lo' in arrays
                      else None)
+    model._data_box = _BaseGP._box_of(model._X * model._hp['sx'])
     model._scale = float(header['scale'])
     model._stale = bool(header.get('stale', False))
     model._cert = Certificate.from_dict(header['certificate'])
