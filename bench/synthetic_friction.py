@@ -91,7 +91,7 @@ def main(argv=None) -> int:
                 C.log(f'{NAME}: seed {seed} n {n} {kind}')
                 fits = C.fit_all_modes(kind, Q, T, random_state=seed,
                                        **(dict(n_restarts=0, max_boxes=2000) if a.quick
-                                          else dict(max_boxes=4000)))
+                                          else {}))
                 for mode, (m, sec) in fits.items():
                     c = (kind, mode)
                     res[c][n].append(C.nmse(m.predict(Qtest), Ttest))
