@@ -56,10 +56,13 @@ _DESCRIPTIONS = {
     'refit_mode': 'async (background thread) | sync (in the callback; tests only)',
     'max_abs_velocity': '|velocity| above this is rejected',
     'max_abs_effort': '|effort| above this is rejected',
+    'operating_domain': "certified: declared operating box [lo_1..lo_N, hi_1..hi_N] in the "
+                        "joints' units, proven with the data box ([] = data box only)",
 }
 
 _ARRAY_TYPES = {'joints': Parameter.Type.STRING_ARRAY,
-                'selection_scale': Parameter.Type.DOUBLE_ARRAY}
+                'selection_scale': Parameter.Type.DOUBLE_ARRAY,
+                'operating_domain': Parameter.Type.DOUBLE_ARRAY}
 
 
 def damping_matrix_msg(D) -> Float64MultiArray:

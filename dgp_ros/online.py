@@ -104,7 +104,7 @@ REJECT_REASONS = ('empty', 'length_mismatch', 'bad_names', 'duplicate_name', 'mi
 OK, WARN, ERROR = 0, 1, 2
 
 # Structural fields: changing one at run time drops the model and refits.
-_STRUCTURAL = ('model', 'passivity', 'buffer_size', 'joints')
+_STRUCTURAL = ('model', 'passivity', 'buffer_size', 'joints', 'operating_domain')
 
 
 @dataclass
@@ -127,6 +127,8 @@ class EstimatorConfig:
     refit_mode: str = 'async'            # async (background thread) | sync (in-line, replay/tests)
     max_abs_velocity: float = 1.0e4      # |qd| above this is rejected (out_of_range)
     max_abs_effort: float = 1.0e8        # |tau| above this is rejected (out_of_range)
+    # 'certified': declared operating box [lo_1..lo_N, hi_1..hi_N]; [] = the data box only
+    operating_domain: List[float] = field(default_factory=list)
 
     def validate(self) -> 'EstimatorConfig':
         """Raise ValueError with a clear reason if a field is invalid; return self."""
@@ -181,6 +183,20 @@ class EstimatorConfig:
         if self.joints and self.selection_scale and \
                 len(self.selection_scale) != len(self.joints):
             fail('selection_scale', f'needs one entry per joint ({len(self.joints)})')
+        od = self.operating_domain
+        if not isinstance(od, (list, tuple)) or any(
+                isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer))
+                or not math.isfinite(v) for v in od):
+            fail('operating_domain', 'must be a list of finite numbers [lo_1..lo_N, hi_1..hi_N]')
+        if od:
+            if len(od) % 2:
+                fail('operating_domain', 'needs an even length: N lower bounds, then N upper')
+            k = len(od) // 2
+            if any(hi <= lo for lo, hi in zip(od[:k], od[k:])):
+                fail('operating_domain', 'every lower bound must be below its upper bound')
+            if self.joints and k != len(self.joints):
+                fail('operating_domain', f'needs 2 x {len(self.joints)} entries (one lower and '
+                                         f'one upper bound per joint)')
         if not isinstance(self.model_path, str):
             fail('model_path', 'must be a string')
         if self.model_path:
@@ -197,7 +213,7 @@ class EstimatorConfig:
         if unknown:
             raise ValueError(f'unknown estimator parameter(s): {", ".join(sorted(unknown))}')
         kw = dict(d)
-        for k in ('joints', 'selection_scale'):
+        for k in ('joints', 'selection_scale', 'operating_domain'):
             if k in kw:
                 kw[k] = list(kw[k])
         return cls(**kw)
@@ -601,6 +617,9 @@ class OnlineEstimator:
             else:
                 kw = dict(job['hyper'] or {})
                 kw.update(passivity=cfg.passivity, window=cfg.buffer_size)
+                if cfg.operating_domain and cfg.passivity == 'certified':
+                    k = len(cfg.operating_domain) // 2
+                    kw['operating_domain'] = (cfg.operating_domain[:k], cfg.operating_domain[k:])
                 model = self._gp.make_model(cfg.model, **kw)
                 model.fit(job['Q'], job['T'], optimize=job['optimize'])
             seq = job['seq']

@@ -279,5 +279,5 @@ def test_yaml_defaults_match_config():
             continue
         assert k in defaults, k
         assert v == defaults[k], (k, v, defaults[k])
-    missing = set(defaults) - set(params) - {'joints', 'selection_scale'}
+    missing = set(defaults) - set(params) - {'joints', 'selection_scale', 'operating_domain'}
     assert not missing

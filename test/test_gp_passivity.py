@@ -132,3 +132,50 @@ def test_projection_is_non_expansive_on_passive_truth():
         moved = _power(Q, est) < 0
         assert moved.any() and np.all(err_after[moved] < err_before[moved])
         assert np.array_equal(proj[~moved], est[~moved])
+
+
+def test_declared_operating_domain_keeps_the_correction_where_no_data_was_seen():
+    """Data in one corner of the operating box: with the box declared, the certified model
+    equals the unconstrained one over the whole box (no blend to the prior mean), and stays
+    passive inside and far outside it."""
+    rng = np.random.default_rng(5)
+    lo, hi = np.array([-2.0, -2.0]), np.array([2.0, 2.0])
+    Q = rng.uniform(-2, 0, (40, 2))                          # one quadrant only
+    f = lambda X: X @ np.array([[2.0, 0.3], [0.1, 1.0]]).T + 0.5 * np.tanh(X / 0.3)  # noqa: E731
+    T = f(Q)
+    base = FullDGP(passivity='none').fit(Q, T)
+    hp = base.get_params()['hyperparams']
+    plain = FullDGP(passivity='certified', hyperparams=hp).fit(Q, T, optimize=False)
+    decl = FullDGP(passivity='certified', hyperparams=hp,
+                   operating_domain=(lo, hi)).fit(Q, T, optimize=False)
+    c = decl.certificate()
+    assert c.certified and c.method == 'domain-bnb+blend'
+    ilo, ihi = c.domain
+    assert np.all(ilo <= lo) and np.all(ihi >= hi)           # the declared box is proven
+    X = rng.uniform(lo, hi, (20_000, 2))
+    assert np.allclose(decl.predict(X), base.predict(X), rtol=1e-12, atol=1e-9)
+    # without the declaration the far quadrant falls back to the prior mean: a real difference
+    opp = rng.uniform(0.8, 2.0, (2000, 2))
+    assert np.abs(plain.predict(opp) - base.predict(opp)).max() > 1e-3
+    viol = 0
+    for Z in (X, rng.uniform(-400, 400, (200_000, 2))):
+        viol += int((_power(Z, decl.predict(Z)) < 0).sum())
+    assert viol == 0
+
+
+def test_operating_domain_is_validated_and_saved(tmp_path):
+    with pytest.raises(ValueError, match='lo < hi'):
+        FullDGP(passivity='certified', operating_domain=([0.0, 1.0], [1.0, 1.0]))
+    with pytest.raises(ValueError, match='finite'):
+        FullDGP(passivity='certified', operating_domain=([0.0, np.nan], [1.0, 1.0]))
+    rng = np.random.default_rng(1)
+    Q = rng.uniform(-1, 1, (20, 2))
+    with pytest.raises(ValueError, match='operating_domain has 3'):
+        FullDGP(passivity='certified', operating_domain=([0, 0, 0], [1, 1, 1])).fit(Q, Q)
+    m = FullDGP(passivity='certified', n_restarts=0,
+                operating_domain=([-3.0, -3.0], [3.0, 3.0])).fit(Q, 2 * Q)
+    m.save(tmp_path / 'm.npz')
+    r = FullDGP.load(tmp_path / 'm.npz')
+    assert r.get_params()['operating_domain'] == [[-3.0, -3.0], [3.0, 3.0]]
+    X = rng.uniform(-3, 3, (1000, 2))
+    assert np.array_equal(r.predict(X), m.predict(X))

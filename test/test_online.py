@@ -51,6 +51,8 @@ def cfg(**kw):
     ('joints', ['a', 'a'], 'unique'), ('joints', ['a', ''], 'joints'),
     ('refit_mode', 'thread', 'refit_mode'), ('model_path', '/nonexistent/dir/m.npz', 'directory'),
     ('selection_scale', [1.0, -1.0], 'selection_scale'), ('max_abs_effort', 0.0, 'max_abs_effort'),
+    ('operating_domain', [0.0, 1.0, 2.0], 'even'), ('operating_domain', [1.0, 0.0], 'below'),
+    ('operating_domain', [0.0, float('inf')], 'finite'),
 ])
 def test_config_validate_rejects_with_reason(field, value, words):
     c = EstimatorConfig(**{field: value})

@@ -121,6 +121,12 @@ class _BaseGP:
         quarter blend) before the correction itself is shrunk.
     max_boxes : int
         Branch-and-bound budget of the domain verification.
+    operating_domain : ((N,), (N,)) or None
+        'certified': a declared operating box ``(lo, hi)`` in model units (e.g. the flight
+        envelope). The verified box is then the hull of it and the data box (grown by
+        ``domain_margin``), so the full correction is kept wherever the system operates, also
+        where no sample has been seen yet. If that cannot be proven, the data-derived domains
+        are tried next. None: the data box only.
     projection_weights : (N,) or None
         Diagonal of ``W^-1`` for 'projected' (default ones, i.e. Euclidean in model units).
     hyperparams : dict or None
@@ -135,7 +141,8 @@ class _BaseGP:
     def __init__(self, passivity: str = 'none', noise=None, window: Optional[int] = None,
                  n_restarts: int = 2, max_opt_samples: int = 300, domain_margin: float = 0.1,
                  blend_width: float = 0.1, max_boxes: int = 50000, projection_weights=None,
-                 hyperparams: Optional[dict] = None, random_state: int = 0):
+                 hyperparams: Optional[dict] = None, random_state: int = 0,
+                 operating_domain=None):
         if passivity not in PASSIVITY_MODES:
             raise ValueError(f'passivity must be one of {PASSIVITY_MODES}, got {passivity!r}')
         if self._kind == 'ard' and passivity in ('paper', 'certified'):
@@ -162,6 +169,20 @@ class _BaseGP:
         if self.projection_weights is not None and np.any(self.projection_weights <= 0):
             raise ValueError('projection_weights must be positive')
         self.random_state = int(random_state)
+        self.operating_domain = None
+        if operating_domain is not None:
+            try:
+                lo, hi = (np.asarray(v, dtype=float).ravel() for v in operating_domain)
+            except (TypeError, ValueError):
+                raise ValueError('operating_domain must be a pair (lo, hi) of (N,) arrays') \
+                    from None
+            if lo.shape != hi.shape or lo.size == 0 or not (np.all(np.isfinite(lo)) and
+                                                            np.all(np.isfinite(hi))):
+                raise ValueError('operating_domain: lo and hi must be finite and of equal length')
+            if np.any(hi <= lo):
+                raise ValueError(f'operating_domain: need lo < hi in every dimension, got '
+                                 f'lo={lo.tolist()}, hi={hi.tolist()}')
+            self.operating_domain = (lo, hi)
         self._hp = None if hyperparams is None else self._hp_from_dict(hyperparams)
         self._fitted = False
         self._cert = None
@@ -181,7 +202,9 @@ class _BaseGP:
                     max_boxes=self.max_boxes,
                     projection_weights=(None if self.projection_weights is None
                                         else self.projection_weights.tolist()),
-                    hyperparams=hp, random_state=self.random_state)
+                    hyperparams=hp, random_state=self.random_state,
+                    operating_domain=(None if self.operating_domain is None else
+                                      [v.tolist() for v in self.operating_domain]))
 
     def set_params(self, **kw):
         """Set constructor arguments; returns self. Takes effect at the next ``fit``."""
@@ -286,6 +309,9 @@ class _BaseGP:
                 raise ValueError(f'the kept hyper-parameters are for N = {self._hp["sx"].size}, '
                                  f'data has N = {N}')
             self._hp = None
+        if self.operating_domain is not None and self.operating_domain[0].size != N:
+            raise ValueError(f'operating_domain has {self.operating_domain[0].size} entries per '
+                             f'bound, data has N = {N}')
         if self.projection_weights is not None and self.projection_weights.size != N:
             raise ValueError(f'projection_weights has {self.projection_weights.size} entries, '
                              f'data has N = {N}')
@@ -300,7 +326,8 @@ class _BaseGP:
         self._X = Qd / self._hp['sx']
         self._R = Tau / self._hp['sy'] - self._prior_std(self._X)
         self._data_box = self._box_of(Qd)
-        self._domain = self._make_domain(self._data_box, self.domain_margin, self.blend_width)
+        self._domain = self._make_domain(self._hull(self._data_box), self.domain_margin,
+                                         self.blend_width)
         self._scale = 1.0
         self._leaves = None
         self._stale = False
@@ -733,7 +760,8 @@ class _BaseGP:
         if np.all((Q >= ilo) & (Q <= ihi)):
             return
         self._data_box = self._box_of(self.X_train_)
-        self._domain = self._make_domain(self._data_box, self.domain_margin, self.blend_width)
+        self._domain = self._make_domain(self._hull(self._data_box), self.domain_margin,
+                                         self.blend_width)
         self._leaves = None
         if self._cert is not None and self._cert.method == 'domain-bnb+blend':
             self._stale = True
@@ -742,6 +770,14 @@ class _BaseGP:
     def _box_of(Qd):
         lo, hi = Qd.min(axis=0), Qd.max(axis=0)
         return lo, hi, np.maximum(hi - lo, np.maximum(0.1 * _rms(Qd), 1e-9))
+
+    def _hull(self, box):
+        """The data box joined with the declared operating domain (if any)."""
+        if self.operating_domain is None:
+            return box
+        lo = np.minimum(box[0], self.operating_domain[0])
+        hi = np.maximum(box[1], self.operating_domain[1])
+        return lo, hi, np.maximum(hi - lo, box[2])
 
     @staticmethod
     def _make_domain(box, margin, blend):
@@ -779,7 +815,11 @@ class _BaseGP:
         if after_update:
             domains = [self._domain]
         else:
-            domains = [self._make_domain(self._data_box, f_m, f_b) for f_m, f_b in
+            # declared operating domain first (if any), then the data box alone
+            boxes = [self._hull(self._data_box)]
+            if self.operating_domain is not None:
+                boxes.append(self._data_box)
+            domains = [self._make_domain(b, f_m, f_b) for b in boxes for f_m, f_b in
                        ((self.domain_margin, self.blend_width),
                         (0.5 * self.domain_margin, 0.5 * self.blend_width),
                         (0.0, 0.25 * self.blend_width))]
