@@ -264,3 +264,54 @@ def test_copositivity_margin_is_exact_against_sampling():
         assert sampled - marg[k] < 0.05            # ...and tight
     assert copositivity_margin(np.array([[1.0, -1.0], [-1.0, 1.0]])) == pytest.approx(0.0, abs=1e-12)
     assert copositivity_margin(np.array([[0.0, 1.0], [1.0, 0.0]])) >= 0   # copositive, not PSD
+
+
+@pytest.mark.parametrize('window', [None, 7, 40])
+def test_window_cholesky_equals_fresh_factorization(window):
+    """In-place append / drop-oldest (buffer growth and block moves included) against a fresh
+    Cholesky of the same kernel window, factor and alpha = K^-1 r."""
+    from scipy.linalg import cho_solve, cholesky
+
+    from dgp_ros.gp._chol import WindowCholesky
+    rng = np.random.default_rng(4)
+    X = rng.uniform(-1, 1, (260, 2))
+    r = rng.standard_normal(260)
+    sn2 = 1e-3
+    K = se_ard(X, X, np.array([0.4, 0.7]), 1.3) + sn2 * np.eye(260)
+    lo, hi = 0, 3
+    wc = WindowCholesky(cholesky(K[:3, :3], lower=True), r[:3],
+                        limit=None if window is None else window + 1)
+    caps = set()
+    for i in range(3, 260):
+        wc.append(K[lo:hi, i], K[i, i], sn2, r[i])
+        hi += 1
+        if window is not None and hi - lo > window:
+            wc.drop_first()
+            lo += 1
+        caps.add(wc.capacity)
+        if i % 23 == 0 or i == 259:
+            L = cholesky(K[lo:hi, lo:hi], lower=True)
+            assert wc.n == hi - lo
+            assert np.max(np.abs(wc.L - L)) <= 1e-10 * np.abs(L).max()
+            a = cho_solve((L, True), r[lo:hi])
+            assert np.max(np.abs(wc.alpha() - a)) <= 1e-8 * np.abs(a).max()
+    if window is None:
+        assert len(caps) > 3                      # grew several times
+    else:
+        assert max(caps) <= window + 1 + max(8, (window + 1) // 8)   # bounded memory
+
+
+def test_window_cholesky_clamps_an_exact_duplicate():
+    from scipy.linalg import cholesky
+
+    from dgp_ros.gp._chol import WindowCholesky
+    X = np.array([[0.0, 0.0], [1.0, 0.5]])
+    sn2 = 1e-6
+    K = se_ard(X, X, np.ones(2), 1.0) + sn2 * np.eye(2)
+    wc = WindowCholesky(cholesky(K, lower=True), np.array([1.0, 2.0]), limit=3)
+    c = se_ard(X, X[:1], np.ones(2), 1.0)[:, 0]
+    wc.append(c, 1.0 + sn2, sn2, 1.0)           # the first sample again
+    d = wc.diag()
+    assert np.all(np.isfinite(wc.alpha())) and d[-1] >= np.sqrt(sn2) * (1 - 1e-12)
+    with pytest.raises(ValueError, match='rows'):
+        wc.solve(np.ones(5))

@@ -25,10 +25,10 @@ import warnings
 from typing import Optional
 
 import numpy as np
-from scipy.linalg import LinAlgError, cho_solve, cholesky, solve_triangular
-from scipy.linalg.blas import drot
+from scipy.linalg import LinAlgError, cho_solve, cholesky
 from scipy.optimize import minimize
 
+from ._chol import WindowCholesky
 from ._validation import as_matrix, as_pair
 from .kernels import element_layout, se_ard
 from .passivity import Certificate, copositivity_margin, project_passive, projection_lambda
@@ -78,25 +78,6 @@ def _chol_jitter(K: np.ndarray):
             continue
     raise LinAlgError(f'kernel matrix not positive definite even with jitter '
                       f'{_JITTER_STEPS[-1]:g} x mean diagonal')
-
-
-def _chol_drop_first(L: np.ndarray) -> np.ndarray:
-    """Cholesky factor of ``K[1:, 1:]`` from that of ``K`` (rank-one update, O(n^2)).
-
-    ``K[1:,1:] = L21 L21^T + L22 L22^T``: Givens rotations fold ``L21`` into ``L22``
-    (BLAS drot, one call per column).
-    """
-    x = np.array(L[1:, 0])
-    L2 = np.asfortranarray(L[1:, 1:])          # columns contiguous: drot works in place
-    n = L2.shape[0]
-    for k in range(n):
-        xk = x[k]
-        if xk == 0.0:
-            continue
-        lkk = L2[k, k]
-        r = math.hypot(lkk, xk)
-        drot(L2[k:, k], x[k:], lkk / r, xk / r, overwrite_x=1, overwrite_y=1)
-    return L2
 
 
 class _BaseGP:
@@ -450,8 +431,11 @@ class _BaseGP:
         tot = 0.0
         for m in range(self.N):
             tot += (-0.5 * self._R[:, m] @ self._alpha[:, m]
-                    - np.log(np.diag(self._L[m])).sum() - 0.5 * n * _LOG2PI)
+                    - np.log(self._L[m].diag()).sum() - 0.5 * n * _LOG2PI)
         return float(tot)
+
+    def _chol_limit(self) -> Optional[int]:
+        return None if self.window is None else self.window + 1
 
     def _factorize(self):
         X = self._X
@@ -466,9 +450,10 @@ class _BaseGP:
                 raise ValueError(f'kernel matrix of output {m} is not finite: hyper-parameters '
                                  f'or inputs out of range')
             L, j = _chol_jitter(K)
-            self._L.append(L)
+            wc = WindowCholesky(L, self._R[:, m], limit=self._chol_limit())
+            self._L.append(wc)
             self._jit[m] = j
-            self._alpha[:, m] = cho_solve((L, True), self._R[:, m], check_finite=False)
+            self._alpha[:, m] = wc.alpha()
         self.jitter_ = float(self._jit.max())
 
     # ------------------------------------------------------------------ online update
@@ -484,34 +469,22 @@ class _BaseGP:
         Q, T = as_pair(qd if np.ndim(qd) == 2 else np.atleast_2d(qd),
                        tau if np.ndim(tau) == 2 else np.atleast_2d(tau), self.N)
         hp = self._hp
+        sn2 = np.exp(hp['log_sn2'])
         for q, t in zip(Q, T):
             x = (q / hp['sx'])[None, :]
             r = t / hp['sy'] - self._prior_std(x)[0]
-            n = self._X.shape[0]
             for m in range(self.N):
-                L = self._L[m]
                 c = self._kmat(m, self._X, x)[:, 0]
-                d = self._kdiag(m, x)[0] + math.exp(hp['log_sn2'][m]) + self._jit[m]
-                l = solve_triangular(L, c, lower=True, check_finite=False)
-                # the Schur complement of K + (sn2 + jit) I is >= sn2 + jit exactly; clamp the
-                # rounding there instead of letting a near-duplicate sample blow up L^-1
-                floor = math.exp(hp['log_sn2'][m]) + self._jit[m]
-                dd = max(d - l @ l, floor)
-                Ln = np.zeros((n + 1, n + 1))
-                Ln[:n, :n] = L
-                Ln[n, :n] = l
-                Ln[n, n] = math.sqrt(dd)
-                self._L[m] = Ln
+                floor = sn2[m] + self._jit[m]
+                self._L[m].append(c, self._kdiag(m, x)[0] + floor, floor, r[m])
             self._X = np.vstack([self._X, x])
             self._R = np.vstack([self._R, r[None, :]])
             if self.window is not None and self._X.shape[0] > self.window:
                 for m in range(self.N):
-                    self._L[m] = _chol_drop_first(self._L[m])
+                    self._L[m].drop_first()
                 self._X = self._X[1:]
                 self._R = self._R[1:]
-        self._alpha = np.column_stack([
-            cho_solve((self._L[m], True), self._R[:, m], check_finite=False)
-            for m in range(self.N)])
+        self._alpha = np.column_stack([self._L[m].alpha() for m in range(self.N)])
         if self.passivity == 'certified':
             self._grow_domain(Q)
         self._enforce(after_update=True)
@@ -548,7 +521,7 @@ class _BaseGP:
             Ks = self._kmat(m, X, self._X)
             mean[:, m] += wq * (Ks @ self._alpha[:, m])
             if return_var:
-                v = solve_triangular(self._L[m], Ks.T, lower=True, check_finite=False)
+                v = self._L[m].solve(Ks.T)
                 var[:, m] = np.maximum(self._kdiag(m, X) - np.einsum('ij,ij->j', v, v), 0.0)
         tau = mean * hp['sy']
         if return_var:
@@ -896,7 +869,7 @@ class _BaseGP:
         self._check_fitted()
         arrays = {'X': self._X, 'R': self._R, 'alpha': self._alpha, 'jit': self._jit}
         for m, L in enumerate(self._L):
-            arrays[f'L{m}'] = L
+            arrays[f'L{m}'] = L.L
         for k, v in self._hp.items():
             arrays['hp_' + k] = np.asarray(v, float)
         (ilo, ihi), (olo, ohi) = self._domain
@@ -1055,7 +1028,8 @@ def load_model(path) -> _BaseGP:
     model._X, model._R, model._alpha = arrays['X'], arrays['R'], arrays['alpha']
     model._jit = arrays['jit']
     model.jitter_ = float(model._jit.max())
-    model._L = [arrays[f'L{m}'] for m in range(N)]
+    model._L = [WindowCholesky(arrays[f'L{m}'], model._R[:, m], limit=model._chol_limit())
+                for m in range(N)]
     model._domain = ((arrays['dom_ilo'], arrays['dom_ihi']), (arrays['dom_olo'], arrays['dom_ohi']))
     model._leaves = ((arrays['leaves_lo'], arrays['leaves_hi']) if 'leaves_lo' in arrays
                      else None)
