@@ -79,6 +79,7 @@ def run_inprocess(args) -> dict:
     cfg = EstimatorConfig(model=args.model, passivity=args.passivity, buffer_size=args.buffer,
                           min_samples=min(50, args.buffer), refit_period_s=args.refit_period,
                           optimize_every_n_refits=args.optimize_every, selection=args.selection,
+                          min_sample_interval_s=args.min_sample_interval,
                           joints=list(JOINTS), refit_mode='async')
     est = OnlineEstimator(cfg)
     stream = Stream(args.seed)
@@ -152,7 +153,8 @@ def run_inprocess(args) -> dict:
                      lateness_p50_ms=1e3 * pct(late, 50), lateness_p99_ms=1e3 * pct(late, 99),
                      lateness_max_ms=1e3 * float(late.max())),
         buffer_fill=d['buffer_fill'], samples_added=d['samples_added'],
-        samples_skipped=d['samples_skipped'], sources=sources,
+        samples_skipped=d['samples_skipped'],
+        samples_rate_limited=d['samples_rate_limited'], sources=sources,
         invariant=dict(non_finite=bad_finite, non_passive=bad_passive,
                        passivity_fallbacks=d['passivity_fallbacks']),
         config=cfg.to_dict())
@@ -171,7 +173,8 @@ def run_node(args) -> dict:
     cmd = [exe, '--ros-args', '-p', f'model:={args.model}', '-p', f'passivity:={args.passivity}',
            '-p', f'buffer_size:={args.buffer}', '-p', f'refit_period_s:={float(args.refit_period)}',
            '-p', f'optimize_every_n_refits:={args.optimize_every}',
-           '-p', f'selection:={args.selection}', '-p', 'diagnostics_period_s:=1.0']
+           '-p', f'selection:={args.selection}', '-p', 'diagnostics_period_s:=1.0',
+           '-p', f'min_sample_interval_s:={float(args.min_sample_interval)}']
     child = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                              start_new_session=True)
     rclpy.init()
@@ -275,6 +278,9 @@ def main(argv=None) -> int:
     p.add_argument('--passivity', default='paper')
     p.add_argument('--selection', default='novelty')
     p.add_argument('--refit-period', type=float, default=5.0, help='stamp seconds')
+    p.add_argument('--min-sample-interval', type=float, default=0.01,
+                   help='learning rate limit, stamp seconds (estimator default 0.01; 0 = learn '
+                        'every message)')
     p.add_argument('--optimize-every', type=int, default=0)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--close-timeout', type=float, default=5.0,

@@ -242,7 +242,8 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
               f'duration {g("last_refit_duration_s", float):.2f} s; certified '
               f'{diag.get("certified")} ({diag.get("method")}, margin {diag.get("margin")}); '
               f'buffer {diag.get("buffer_fill")}/{diag.get("buffer_size")}, skipped '
-              f'(near-duplicates) {diag.get("samples_skipped")}, rejected '
+              f'(near-duplicates) {diag.get("samples_skipped")}, rate-limited '
+              f'{diag.get("samples_rate_limited")}, rejected '
               f'{diag.get("rejected_total")}, passivity fallbacks '
               f'{diag.get("passivity_fallbacks")}')
         print(f'status: {["OK", "WARN", "ERROR", "STALE"][min(int(diag["level"]), 3)]}: '

@@ -51,6 +51,8 @@ _DESCRIPTIONS = {
     'selection': 'all | novelty (skip near-duplicate samples)',
     'selection_min_distance': 'novelty threshold in standardized units',
     'selection_scale': 'per-joint scale for novelty ([] = buffer std)',
+    'min_sample_interval_s': 'learn at most one sample per this much stamp time (0 = every '
+                             'sample); every message still gets an estimate',
     'joints': 'joint names to select and order ([] = message order)',
     'model_path': 'npz model: loaded at start, saved on refit, shutdown and ~/save_model',
     'refit_mode': 'async (background thread) | sync (in the callback; tests only)',

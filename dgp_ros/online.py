@@ -57,6 +57,13 @@ Behaviour
   state must not fill the buffer with near-duplicates); the estimate is still returned
   (``Estimate.added`` is False). The scale is ``selection_scale`` if given, else the per-dimension
   standard deviation of the buffered velocities (floored, see ``_selection_scale``).
+* Learning rate limit: at most one sample per ``min_sample_interval_s`` of stamp time is added
+  (default 10 ms, i.e. 100 Hz; ``samples_rate_limited`` counts the others). Every message still
+  gets its estimate. With a full window an update costs O(n^2) per output (about 1 ms at
+  n = 500, 2 ms at n = 1000, mostly the Givens rotations that drop the oldest sample), so
+  learning from every message of a 1 kHz stream cannot keep up (measured: 212 msg/s at buffer
+  500 with 0, 1020 msg/s with 0.01); consecutive 1 ms samples are near-duplicates anyway.
+  Stamp time, not wall time, so a replay decides exactly as the live run did.
 * Stale certificates ('certified' mode): ``update`` only tries the cheap bound; if it fails the
   GP marks its certificate stale (its estimates stay passive pointwise). The estimator then
   re-proves it off the message path on a copy of the model (like a refit: replay + swap).
@@ -122,6 +129,7 @@ class EstimatorConfig:
     selection: str = 'novelty'           # all | novelty
     selection_min_distance: float = 0.05  # novelty threshold, standardized units
     selection_scale: List[float] = field(default_factory=list)  # per-joint scale; [] = automatic
+    min_sample_interval_s: float = 0.01  # learn at most one sample per this stamp time; 0 = all
     joints: List[str] = field(default_factory=list)  # select/order by name; [] = message order
     model_path: str = ''                 # load at start, save on refit / shutdown / request
     refit_mode: str = 'async'            # async (background thread) | sync (in-line, replay/tests)
@@ -156,7 +164,7 @@ class EstimatorConfig:
                                 'else the model is never trained')
         if self.optimize_every_n_refits < 0:
             fail('optimize_every_n_refits', 'must be >= 0 (0 = optimize on the first fit only)')
-        for name in ('refit_period_s', 'selection_min_distance'):
+        for name in ('refit_period_s', 'selection_min_distance', 'min_sample_interval_s'):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) \
                     or not math.isfinite(v) or v < 0:
@@ -309,6 +317,7 @@ class OnlineEstimator:
         self._m_d: Optional[np.ndarray] = None
         self._m_d_dirty = True
         self._last_stamp: Optional[float] = None
+        self._last_added_stamp: Optional[float] = None
         self._last_refit_stamp: Optional[float] = None
         self._refit_requested = False
         if keep_counters:
@@ -319,6 +328,7 @@ class OnlineEstimator:
         self.messages_accepted = 0
         self.samples_added = 0
         self.samples_skipped = 0
+        self.samples_rate_limited = 0
         self.passivity_fallbacks = 0
         self.time_jumps_back = 0
         self.refits_started = 0
@@ -409,7 +419,7 @@ class OnlineEstimator:
                 self._buf = _Buffer(self.config.buffer_size, self._N)
             self._check_clock(stamp)
 
-            added = self._maybe_add(qd, tau)
+            added = self._maybe_add(stamp, qd, tau)
             start_thread = self._maybe_trigger_refit(stamp)
             if not start_thread and self._is_stale() and not self._refit_running() and \
                     self._recertify_due(stamp):
@@ -443,7 +453,13 @@ class OnlineEstimator:
         floor = 1e-3 * (np.abs(Q).mean(axis=0) + 1e-3) if Q.shape[0] else np.ones(self._N)
         return np.maximum(s, floor)
 
-    def _maybe_add(self, qd, tau) -> bool:
+    def _maybe_add(self, stamp: float, qd, tau) -> bool:
+        dt = self.config.min_sample_interval_s
+        last = self._last_added_stamp
+        if dt > 0 and last is not None and last <= stamp < last + dt * (1.0 - 1e-9):
+            # learning rate limit (stamp time, so replay decides exactly as live did)
+            self.samples_rate_limited += 1
+            return False
         if self.config.selection == 'novelty' and self._buf.size > 0 and \
                 self.config.selection_min_distance > 0:
             scale = self._selection_scale()
@@ -453,6 +469,7 @@ class OnlineEstimator:
                 self.samples_skipped += 1
                 return False
         self._buf.append(qd, tau)
+        self._last_added_stamp = stamp
         self._sample_seq += 1
         self.samples_added += 1
         self._m_d_dirty = True
@@ -488,12 +505,10 @@ class OnlineEstimator:
         source = 'prior'
         if self._model is not None:
             try:
-                tau_hat, var = self._model.predict(qd[None, :], return_var=True)
+                tau_hat, var, D = self._model.predict_with_damping(qd[None, :])
                 tau_hat = np.asarray(tau_hat, float)[0]
                 std = np.sqrt(np.maximum(np.asarray(var, float)[0], 0.0))
-                D = None
-                if self.config.model != 'ard':
-                    D = np.asarray(self._model.damping_matrix(qd[None, :]), float)[0]
+                D = None if D is None else np.asarray(D, float)[0]
                 source = 'model'
                 if not (np.all(np.isfinite(tau_hat)) and np.all(np.isfinite(std))):
                     raise FloatingPointError('non-finite prediction')
@@ -632,7 +647,13 @@ class OnlineEstimator:
                     if job['generation'] != self._generation:
                         return False, 'discarded: the estimator was reset'
                     newer = [(s, q, t) for (s, q, t) in self._pending if s > seq]
-                    if not newer or not ok or rounds > 5:
+                    snapshot = None
+                    if ok and not recert and rounds <= 5 and \
+                            len(newer) > max(50, cfg.buffer_size // 4):
+                        # a long backlog (slow fit, fast input): a fixed-hyper refit on the
+                        # current buffer is cheaper than replaying it one update at a time
+                        snapshot = self._buf.arrays() + (self._sample_seq,)
+                    elif not newer or not ok or rounds > 5:
                         if ok and newer:            # catch up the last few in the lock
                             for s, q, t in newer:
                                 model.update(q, t)
@@ -642,6 +663,10 @@ class OnlineEstimator:
                                 self._hyper_params = self._params_of(model)
                         self._pending.clear()
                         break
+                if snapshot is not None:
+                    model.fit(snapshot[0], snapshot[1], optimize=False)
+                    seq = snapshot[2]
+                    continue
                 for s, q, t in newer:                # replay outside the lock
                     model.update(q, t)
                     seq = s
@@ -855,6 +880,7 @@ class OnlineEstimator:
                 messages_received=self.messages_received,
                 messages_accepted=self.messages_accepted,
                 samples_added=self.samples_added, samples_skipped=self.samples_skipped,
+                samples_rate_limited=self.samples_rate_limited,
                 rejected=dict(self.rejected), rejected_total=sum(self.rejected.values()),
                 recent_rejected_fraction=rej_frac,
                 refit_running=self._refit_running(),

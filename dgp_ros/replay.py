@@ -349,6 +349,7 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
         sources={src: int(np.sum(A['source'] == src)) for src in ('model', 'prior', 'fallback')}
         if k else {},
         samples_added=diag['samples_added'], samples_skipped=diag['samples_skipped'],
+        samples_rate_limited=diag['samples_rate_limited'],
         refits=dict(started=est.refits_started, ok=diag['refits_ok'],
                     failed=diag['refits_failed'], last_error=diag['last_refit_error']),
         rejected=dict(diag['rejected'], undecodable=info['undecodable']),

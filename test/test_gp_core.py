@@ -315,3 +315,26 @@ def test_window_cholesky_clamps_an_exact_duplicate():
     assert np.all(np.isfinite(wc.alpha())) and d[-1] >= np.sqrt(sn2) * (1 - 1e-12)
     with pytest.raises(ValueError, match='rows'):
         wc.solve(np.ones(5))
+
+
+@pytest.mark.parametrize('kind', ['full', 'diag', 'ard'])
+@pytest.mark.parametrize('passivity', ['none', 'projected'])
+def test_predict_with_damping_equals_separate_calls_and_batch_path(kind, passivity):
+    """The one-pass per-message path (all element kernels at once, exact differences) agrees
+    with predict + damping_matrix, and with the large-batch GEMM path."""
+    Q, T = _data(60)
+    m = make_model(kind, passivity=passivity).fit(Q, T)
+    Qs = np.random.default_rng(3).uniform(-3, 3, (25, 2))
+    tau, var, D = m.predict_with_damping(Qs)
+    t2, v2 = m.predict(Qs, return_var=True)
+    assert np.array_equal(tau, t2) and np.array_equal(var, v2)
+    if kind == 'ard':
+        assert D is None
+    else:
+        assert np.array_equal(D, m.damping_matrix(Qs))
+        assert np.allclose(np.einsum('kij,kj->ki', D, Qs), tau, rtol=1e-9, atol=1e-9)
+    m._CROSS_AT_ONCE = 0                       # force the per-element GEMM path
+    t3, v3 = m.predict(Qs, return_var=True)
+    scale = np.abs(t3).max()
+    assert np.max(np.abs(t3 - tau)) <= 1e-9 * scale
+    assert np.max(np.abs(v3 - var)) <= 1e-9 * max(np.abs(v3).max(), 1e-300) + 1e-12 * scale ** 2

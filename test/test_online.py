@@ -53,6 +53,7 @@ def cfg(**kw):
     ('selection_scale', [1.0, -1.0], 'selection_scale'), ('max_abs_effort', 0.0, 'max_abs_effort'),
     ('operating_domain', [0.0, 1.0, 2.0], 'even'), ('operating_domain', [1.0, 0.0], 'below'),
     ('operating_domain', [0.0, float('inf')], 'finite'),
+    ('min_sample_interval_s', -0.001, 'min_sample_interval_s'),
 ])
 def test_config_validate_rejects_with_reason(field, value, words):
     c = EstimatorConfig(**{field: value})
@@ -343,3 +344,20 @@ def test_ard_baseline_has_no_damping_matrix():
     assert out[-1].source == 'model' and out[-1].D is None
     assert all(e.power >= 0 for e in out)
     assert math.isfinite(out[-1].power)
+
+
+def test_learning_rate_limit_in_stamp_time():
+    """1 kHz stamps, min_sample_interval_s = 10 ms: every message gets an estimate, one in ten
+    is learned; a clock jump back (bag loop) is learned at once; 0 learns every sample."""
+    est = OnlineEstimator(cfg(min_sample_interval_s=0.01, buffer_size=200))
+    out = feed(est, 500, dt=0.001)
+    d = est.diagnostics()
+    assert all(e is not None and np.all(np.isfinite(e.tau_hat)) for e in out)
+    assert d['samples_added'] == 50 and d['samples_rate_limited'] == 450
+    assert sum(e.added for e in out) == 50
+    e = est.process(0.0, NAMES, traj(0.3), true_tau(traj(0.3)))      # stamp went back
+    assert e.added and est.diagnostics()['samples_added'] == 51
+    est0 = OnlineEstimator(cfg(min_sample_interval_s=0.0, buffer_size=200))
+    feed(est0, 100, dt=0.001)
+    assert est0.diagnostics()['samples_added'] == 100
+    assert est0.diagnostics()['samples_rate_limited'] == 0

@@ -39,13 +39,16 @@ class WindowCholesky:
         Lower Cholesky factor of the current kernel matrix (upper triangle ignored).
     r : (n,) array
         Right-hand side whose forward solve ``z = L^-1 r`` is kept up to date.
+    z : (n,) array or None
+        ``L^-1 r`` if already known (restoring a saved factor); computed if None.
     limit : int or None
         Largest number of samples the factor will ever hold at once (window + 1 during an
         update), or None for unbounded growth. Sizes the buffer: ``limit + slack`` when given
         (slack = max(8, limit // 8) drops between two moves of the block), else grown by 1.5x.
     """
 
-    def __init__(self, L: np.ndarray, r: np.ndarray, limit: Optional[int] = None):
+    def __init__(self, L: np.ndarray, r: np.ndarray, limit: Optional[int] = None,
+                 z: Optional[np.ndarray] = None):
         L = np.asarray(L, dtype=float)
         n = L.shape[0]
         if L.ndim != 2 or L.shape[1] != n or n < 1:
@@ -56,7 +59,9 @@ class WindowCholesky:
         self._alloc(cap)
         self._n = n
         self._view(n)[:n, :] = L
-        self._z = self.solve(np.asarray(r, dtype=float))
+        # z as carried by an earlier instance (a saved model): bit-identical continuation
+        self._z = (self.solve(np.asarray(r, dtype=float)) if z is None
+                   else np.array(z, dtype=float).reshape(n))
 
     # ------------------------------------------------------------------ storage
     def _alloc(self, cap: int) -> None:

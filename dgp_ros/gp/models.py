@@ -511,14 +511,46 @@ class _BaseGP:
         s = self._scale
         return np.full(Q.shape[0], s) if w is None else s * w
 
-    def _raw_predict(self, Q, return_var):
+    # k * n * E up to which all element kernels of a query batch are built in one pass
+    _CROSS_AT_ONCE = 2_000_000
+
+    def _cross_elems(self, X):
+        """Element kernels ``k_e(X, X_train)`` of every element at once, (E, k, n), by exact
+        differences and one exp (the per-message path: one query against the buffer); None for
+        large batches, which take the per-element GEMM path of ``_kmat``."""
+        E = len(self._elist)
+        if X.shape[0] * self._X.shape[0] * E > self._CROSS_AT_ONCE:
+            return None
+        hp = self._hp
+        diff = X[:, None, :] - self._X[None, :, :]               # (k, n, N)
+        diff *= diff
+        K = diff @ np.exp(-2.0 * hp['log_ls']).T                  # (k, n, E) scaled sq. dist.
+        K *= -0.5
+        np.exp(K, out=K)
+        K *= np.exp(hp['log_sf2'])
+        return np.moveaxis(K, 2, 0)
+
+    def _ks(self, m, X, Kel):
+        """Output m's cross kernel k^(m)(X, X_train), (k, n), from ``_cross_elems``."""
+        if Kel is None:
+            return self._kmat(m, X, self._X)
+        Ks = None
+        for e in self._rows[m]:
+            n = self._elist[e][1]
+            k = Kel[e] if n is None else Kel[e] * X[:, n][:, None] * self._X[:, n][None, :]
+            Ks = k if Ks is None else Ks + k
+        return Ks
+
+    def _raw_predict(self, Q, return_var, Kel=None):
         hp = self._hp
         X = Q / hp['sx']
+        if Kel is None:
+            Kel = self._cross_elems(X)
         mean = self._prior_std(X).copy()
         wq = self._corr_weight(Q)
         var = np.zeros_like(X) if return_var else None
         for m in range(self.N):
-            Ks = self._kmat(m, X, self._X)
+            Ks = self._ks(m, X, Kel)
             mean[:, m] += wq * (Ks @ self._alpha[:, m])
             if return_var:
                 v = self._L[m].solve(Ks.T)
@@ -538,6 +570,23 @@ class _BaseGP:
         self._check_fitted()
         Q = as_matrix(Qs, 'Qs', self.N)
         tau, var = self._raw_predict(Q, return_var)
+        tau = self._passive_tau(Q, tau)
+        return (tau, var) if return_var else tau
+
+    def predict_with_damping(self, Qs):
+        """``predict(Qs, return_var=True)`` and ``damping_matrix(Qs)`` in one pass over the
+        training set (the element kernels are built once): returns (tau, var, D), D (k, N, N)
+        or None for ArdGP. Identical to the two separate calls."""
+        self._check_fitted()
+        Q = as_matrix(Qs, 'Qs', self.N)
+        Kel = self._cross_elems(Q / self._hp['sx'])
+        tau, var = self._raw_predict(Q, True, Kel)
+        D = None
+        if self._kind != 'ard':
+            D = self._passive_damping(Q, self._damping_unprojected(Q, Kel=Kel))
+        return self._passive_tau(Q, tau), var, D
+
+    def _passive_tau(self, Q, tau):
         if self.passivity == 'projected':
             tau = project_passive(Q, tau, self.projection_weights)
         elif self._stale:
@@ -546,13 +595,15 @@ class _BaseGP:
                 tau[bad] = Q[bad] * self._hp['mean']
                 self.fit_info_['pointwise_fallbacks'] = (
                     self.fit_info_.get('pointwise_fallbacks', 0) + int(bad.sum()))
-        return (tau, var) if return_var else tau
+        return tau
 
     def damping_matrix(self, Qs):
         """Posterior damping matrix D(q), (k, N, N), with ``predict(q) = D(q) q`` (model units)."""
         self._check_fitted()
         Q = as_matrix(Qs, 'Qs', self.N)
-        D = self._damping_unprojected(Q)
+        return self._passive_damping(Q, self._damping_unprojected(Q))
+
+    def _passive_damping(self, Q, D):
         if self._stale:
             bad = np.einsum('ki,kij,kj->k', Q, D, Q) < 0
             D[bad] = np.diag(self._hp['mean'])
@@ -563,9 +614,11 @@ class _BaseGP:
             D = D + lam[:, None, None] * np.diag(wi)[None]
         return D
 
-    def _damping_unprojected(self, Q, weight=None):
+    def _damping_unprojected(self, Q, weight=None, Kel=None):
         hp = self._hp
         X = Q / hp['sx']
+        if Kel is None:
+            Kel = self._cross_elems(X)
         k = X.shape[0]
         D = np.zeros((k, self.N, self.N))
         idx = np.arange(self.N)
@@ -575,7 +628,7 @@ class _BaseGP:
             sf2 = math.exp(hp['log_sf2'][e])
             if sf2 == 0.0:
                 continue
-            ke = se_ard(X, self._X, np.exp(hp['log_ls'][e]), sf2)
+            ke = se_ard(X, self._X, np.exp(hp['log_ls'][e]), sf2) if Kel is None else Kel[e]
             D[:, m, n] += wq * (ke @ (self._X[:, n] * self._alpha[:, m])) * hp['sy'][m] / hp['sx'][n]
         return D
 
@@ -870,6 +923,7 @@ class _BaseGP:
         arrays = {'X': self._X, 'R': self._R, 'alpha': self._alpha, 'jit': self._jit}
         for m, L in enumerate(self._L):
             arrays[f'L{m}'] = L.L
+            arrays[f'z{m}'] = L.z
         for k, v in self._hp.items():
             arrays['hp_' + k] = np.asarray(v, float)
         (ilo, ihi), (olo, ohi) = self._domain
@@ -1028,7 +1082,8 @@ def load_model(path) -> _BaseGP:
     model._X, model._R, model._alpha = arrays['X'], arrays['R'], arrays['alpha']
     model._jit = arrays['jit']
     model.jitter_ = float(model._jit.max())
-    model._L = [WindowCholesky(arrays[f'L{m}'], model._R[:, m], limit=model._chol_limit())
+    model._L = [WindowCholesky(arrays[f'L{m}'], model._R[:, m], limit=model._chol_limit(),
+                               z=arrays.get(f'z{m}'))
                 for m in range(N)]
     model._domain = ((arrays['dom_ilo'], arrays['dom_ihi']), (arrays['dom_olo'], arrays['dom_ohi']))
     model._leaves = ((arrays['leaves_lo'], arrays['leaves_hi']) if 'leaves_lo' in arrays
