@@ -511,7 +511,7 @@ class _BaseGP:
         s = self._scale
         return np.full(Q.shape[0], s) if w is None else s * w
 
-    # k * n * E up to which all element kernels of a query batch are built in one pass
+    # k * n * E up to which all element kernels of a few queries (k <= 16) are built in one pass
     _CROSS_AT_ONCE = 2_000_000
 
     def _cross_elems(self, X):
@@ -519,8 +519,8 @@ class _BaseGP:
         differences and one exp (the per-message path: one query against the buffer); None for
         large batches, which take the per-element GEMM path of ``_kmat``."""
         E = len(self._elist)
-        if X.shape[0] * self._X.shape[0] * E > self._CROSS_AT_ONCE:
-            return None
+        if X.shape[0] > 16 or X.shape[0] * self._X.shape[0] * E > self._CROSS_AT_ONCE:
+            return None                     # batches: one GEMM per element is faster
         hp = self._hp
         diff = X[:, None, :] - self._X[None, :, :]               # (k, n, N)
         diff *= diff
