@@ -224,6 +224,8 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
         print(f'{"output":<12}{"NMSE (run)":>14}{"NMSE (2nd half)":>18}')
         for n in res['names']:
             print(f'{n:<12}{res["nmse"][n]:>14.4g}{res["nmse_second_half"][n]:>18.4g}')
+        print('(each answer is the posterior after learning that message, when it was learned: '
+              'a tracking error, not a held-out one; held-out accuracy: docs/BENCHMARKS.md)')
         print(f'negative estimated dissipated power: {res["negative_power_count"]} of '
               f'{res["power_messages"]} ({100 * res["negative_power_fraction"]:.3f} %); measured: '
               f'{100 * res["measured_negative_power_fraction"]:.2f} %')
