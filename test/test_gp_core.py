@@ -338,3 +338,18 @@ def test_predict_with_damping_equals_separate_calls_and_batch_path(kind, passivi
     scale = np.abs(t3).max()
     assert np.max(np.abs(t3 - tau)) <= 1e-9 * scale
     assert np.max(np.abs(v3 - var)) <= 1e-9 * max(np.abs(v3).max(), 1e-300) + 1e-12 * scale ** 2
+
+
+def test_rkhs_norms_kept_from_the_factorization_equal_a_rebuild():
+    """The certificate's RKHS norms are taken from the element kernels of the fit; they must equal
+    a^T K_e a rebuilt from scratch (and be recomputed, not reused, after an update)."""
+    Q, T = _data(60, N=3)
+    m = FullDGP(passivity='none', n_restarts=0).fit(Q, T)
+    cached = m._rkhs_sq().copy()
+    assert m._rkhs_cache[0] is m._alpha
+    m._rkhs_cache = None
+    rebuilt = m._rkhs_sq()
+    assert np.allclose(cached, rebuilt, rtol=1e-10, atol=1e-12) and np.all(cached > 0)
+    m.update(Q[:2] * 0.7, T[:2])
+    after = m._rkhs_sq()
+    assert m._rkhs_cache[0] is m._alpha and not np.allclose(after, cached, rtol=1e-6)

@@ -202,6 +202,7 @@ class _BaseGP:
         return self
 
     _FITTED_STATE = ('N', '_elist', '_rows', '_X', '_R', '_L', '_alpha', '_jit', '_fitted',
+                     '_rkhs_cache',
                      '_cert', '_stale', '_scale', '_domain', '_data_box', '_leaves', 'jitter_',
                      'fit_info_')
 
@@ -242,10 +243,9 @@ class _BaseGP:
             return np.broadcast_to(hp['mean'] / hp['sy'], X.shape)
         return X * (hp['mean'] * hp['sx'] / hp['sy'])
 
-    def _kmat(self, m, X1, X2, hp=None):
-        """Output m's kernel k^(m)(X1, X2), standardized. (a, b)"""
+    def _kparts(self, m, X1, X2, hp=None):
+        """Output m's element kernels ``phi_e(x1) phi_e(x2) k_e(x1, x2)``: yields (e, (a, b))."""
         hp = self._hp if hp is None else hp
-        K = None
         for e in self._rows[m]:
             sf2 = math.exp(hp['log_sf2'][e])
             if sf2 == 0.0:
@@ -255,7 +255,16 @@ class _BaseGP:
             if n is not None:
                 k *= X1[:, n][:, None]
                 k *= X2[:, n][None, :]
-            K = k if K is None else K + k
+            yield e, k
+
+    def _kmat(self, m, X1, X2, hp=None):
+        """Output m's kernel k^(m)(X1, X2), standardized. (a, b)"""
+        K = None
+        for _, k in self._kparts(m, X1, X2, hp):
+            if K is None:
+                K = k
+            else:
+                K += k
         return np.zeros((X1.shape[0], X2.shape[0])) if K is None else K
 
     def _kdiag(self, m, X):
@@ -437,14 +446,43 @@ class _BaseGP:
     def _chol_limit(self) -> Optional[int]:
         return None if self.window is None else self.window + 1
 
+    _KEEP_PARTS = 2000
+
+    def _rkhs_sq(self) -> np.ndarray:
+        """Per element ``|C_e|_H^2 = a^T K_e a``, ``a = x_n * alpha_m`` (K_e with sf2), for the
+        current alpha: cached from ``_factorize``, else built (one n x n kernel per element)."""
+        c = getattr(self, '_rkhs_cache', None)
+        if c is not None and c[0] is self._alpha:
+            return c[1]
+        hp = self._hp
+        q = np.zeros(len(self._elist))
+        for e, (m, n) in enumerate(self._elist):
+            sf2 = math.exp(hp['log_sf2'][e])
+            if sf2 == 0.0 or n is None:
+                continue
+            a = self._X[:, n] * self._alpha[:, m]
+            q[e] = float(a @ se_ard(self._X, self._X, np.exp(hp['log_ls'][e]), sf2) @ a)
+        self._rkhs_cache = (self._alpha, q)
+        return q
+
     def _factorize(self):
         X = self._X
         n = X.shape[0]
         self._L = []
         self._alpha = np.zeros((n, self.N))
         self._jit = np.zeros(self.N)
+        # the element kernels are kept while their output is factorized (n <= _KEEP_PARTS) so that
+        # the RKHS norms of the certificate cost one matrix-vector product each, not a rebuild
+        keep = n <= self._KEEP_PARTS
+        rkhs_sq = np.zeros(len(self._elist))
         for m in range(self.N):
-            K = self._kmat(m, X, X)
+            parts = list(self._kparts(m, X, X)) if keep else []
+            if keep:
+                K = np.zeros((n, n))
+                for _, k in parts:
+                    K += k
+            else:
+                K = self._kmat(m, X, X)
             K[np.diag_indices(n)] += math.exp(self._hp['log_sn2'][m])
             if not np.all(np.isfinite(K)):
                 raise ValueError(f'kernel matrix of output {m} is not finite: hyper-parameters '
@@ -454,6 +492,10 @@ class _BaseGP:
             self._L.append(wc)
             self._jit[m] = j
             self._alpha[:, m] = wc.alpha()
+            for e, k in parts:
+                rkhs_sq[e] = float(self._alpha[:, m] @ (k @ self._alpha[:, m]))
+            del parts, K
+        self._rkhs_cache = (self._alpha, rkhs_sq) if keep else None
         self.jitter_ = float(self._jit.max())
 
     # ------------------------------------------------------------------ online update
@@ -685,8 +727,7 @@ class _BaseGP:
             if not rkhs:            # O(n): the per-update check
                 B[m, n] = l1 * hp['sy'][m] / hp['sx'][n]
                 continue
-            rk = math.sqrt(max(float(a @ se_ard(self._X, self._X, np.exp(hp['log_ls'][e]), sf2)
-                                     @ a), 0.0) * sf2)
+            rk = math.sqrt(max(float(self._rkhs_sq()[e]), 0.0) * sf2)
             B[m, n] = min(l1, rk) * hp['sy'][m] / hp['sx'][n]
         return B
 
@@ -774,9 +815,13 @@ class _BaseGP:
     def _terms(self, scale):
         hp = self._hp
         coef = np.stack([self._X[:, n] * self._alpha[:, m] * scale for m, n in self._elist])
-        return CorrectionTerms(self._X, self._elist, np.exp(hp['log_sf2']), np.exp(hp['log_ls']),
+        sf2 = np.exp(hp['log_sf2'])
+        with np.errstate(divide='ignore', invalid='ignore'):
+            rk = np.where(sf2 > 0, np.sqrt(np.maximum(self._rkhs_sq(), 0.0) / sf2), 0.0)
+        return CorrectionTerms(self._X, self._elist, sf2, np.exp(hp['log_ls']),
                                coef, hp['mean'], hp['sx'], hp['sy'],
-                               lambda Q: self._damping_unprojected(Q, np.full(Q.shape[0], scale)))
+                               lambda Q: self._damping_unprojected(Q, np.full(Q.shape[0], scale)),
+                               rkhs=abs(scale) * rk)
 
     def _grow_domain(self, Q):
         """Samples outside the verified box would only ever see the prior mean: grow the domain
