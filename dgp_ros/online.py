@@ -553,6 +553,8 @@ class OnlineEstimator:
         if self._refit_running():
             return False
         due = self._refit_requested
+        if self._model is not None and self._last_refit_stamp is None:
+            self._last_refit_stamp = stamp               # loaded model: start the refit clock
         if self._model is None and self._last_refit_stamp is None:
             due = True                                   # first fit
         elif self.config.refit_period_s > 0 and self._last_refit_stamp is not None and \

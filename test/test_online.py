@@ -361,3 +361,17 @@ def test_learning_rate_limit_in_stamp_time():
     feed(est0, 100, dt=0.001)
     assert est0.diagnostics()['samples_added'] == 100
     assert est0.diagnostics()['samples_rate_limited'] == 0
+
+
+def test_periodic_refits_run_after_loading_a_model(tmp_path):
+    """A model loaded from model_path starts the refit clock at the first message: the periodic
+    refits happen as for a model trained in this run (they never started before the fix)."""
+    path = str(tmp_path / 'model.npz')
+    est = OnlineEstimator(cfg(model_path=path))
+    feed(est, 30)
+    est.save()
+    est2 = OnlineEstimator(cfg(model_path=path, refit_period_s=1.0))
+    assert est2.trained
+    feed(est2, 60, t0=100.0, dt=0.05)             # 3 s of stamps
+    d = est2.diagnostics()
+    assert d['refits_ok'] >= 2, d
