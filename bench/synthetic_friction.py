@@ -142,8 +142,8 @@ def main(argv=None) -> int:
         f'{2 * k_pass}). Training: n uniform samples in [-{BOX:g}, {BOX:g}]^2 rad/s, '
         f'noise sd {NOISE} Nm; test: NMSE per joint on 4000 noise-free points of the same box; '
         f'seeds {seeds}' + ('' if a.quick else ' for n <= 100, seed 0 only above (time '
-                           'budget); certified mode with a verification budget of 4000 boxes '
-                           '(library default 20000)') + '. Median over seeds shown. Each model is optimized once (passivity none) and every '
+                           'budget); certified mode with the library default verification '
+                           'budget') + '. Median over seeds shown. Each model is optimized once (passivity none) and every '
         f'mode is fitted at those hyper-parameters.\n')
     lines.append('### NMSE per joint (median over seeds), joint 1 / joint 2\n')
     hdr = ['model', 'passivity'] + [f'n={n}' for n in ns]
