@@ -171,7 +171,10 @@ def analyse(rec: _Recorder) -> dict:
         measured_negative_power_fraction=float(np.mean(p_meas < 0)),
         latency_end_to_end_ms=dict(median=float(np.median(lat) * 1e3),
                                    p99=float(np.percentile(lat, 99) * 1e3)),
-        answered_fraction=len(rec.est) / max(len(rec.meas), 1),
+        # of the measurements this process saw, the fraction the estimator answered (answers
+        # to measurements published before our subscription matched are not counted)
+        answered_fraction=len(stamps) / max(len(rec.meas), 1),
+        answers_to_unseen=len(set(rec.est) - set(rec.meas)),
     )
     return out
 
@@ -218,8 +221,10 @@ def plot(res: dict, out_dir: str) -> List[str]:
 def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
     print('\n=== dgp_ros demo summary ' + '=' * 50)
     print(f'wall time {wall_s:.1f} s; measurements {res["measurements"]}, answers '
-          f'{res["answers"]} ({100 * res.get("answered_fraction", 0):.1f} %), paired '
-          f'{res["paired"]}, damping matrices {res["matrices"]}')
+          f'{res["answers"]}, measurements answered {res["paired"]} '
+          f'({100 * res.get("answered_fraction", 0):.1f} %; {res.get("answers_to_unseen", 0)} '
+          f'answers to measurements sent before this listener connected), damping matrices '
+          f'{res["matrices"]}')
     if 'nmse' in res:
         print(f'{"output":<12}{"NMSE (run)":>14}{"NMSE (2nd half)":>18}')
         for n in res['names']:
