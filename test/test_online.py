@@ -375,3 +375,18 @@ def test_periodic_refits_run_after_loading_a_model(tmp_path):
     feed(est2, 60, t0=100.0, dt=0.05)             # 3 s of stamps
     d = est2.diagnostics()
     assert d['refits_ok'] >= 2, d
+
+
+def test_hyper_parameters_relearned_each_time_the_buffer_doubles():
+    """min_samples = 10, buffer 80, no periodic refits: optimized refits at 10, 20, 40 and 80
+    buffered samples (the first optimum, from 10 samples, is not kept for the whole run)."""
+    est = OnlineEstimator(cfg(buffer_size=80, min_samples=10, refit_period_s=0.0,
+                              optimize_every_n_refits=0))
+    seen = []
+    for i in range(120):
+        feed(est, 1, t0=0.05 * i, seed=i)
+        seen.append((est.refits_ok, est._opt_n))
+    d = est.diagnostics()
+    assert d['refits_ok'] == 4 and est._opt_n == 80, (d['refits_ok'], est._opt_n)
+    assert sorted({n for _, n in seen}) == [0, 10, 20, 40, 80]      # 0: before the first fit
+    assert d['last_refit_optimized']
