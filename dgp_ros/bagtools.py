@@ -502,14 +502,14 @@ class Player:
     ``/clock`` with the bag time at this wall rate (``0`` = not at all; with ``rate=0`` a clock
     message precedes every message instead). ``remap``: {bag topic: published topic}.
     ``wait_for_subscribers``: before starting, wait up to this many seconds until every publisher
-    has at least one subscriber (``0`` = do not wait). ``stop``: a ``threading.Event`` that ends
+    has at least ``min_subscribers`` subscribers (``0`` = do not wait). ``stop``: a ``threading.Event`` that ends
     playback early. The player does not need an executor: publishing needs no spinning.
     """
 
     def __init__(self, node, path, rate: float = 1.0, clock_hz: float = 0.0, loop: bool = False,
                  topics=None, remap=None, depth: int = 1000, start_delay: float = 0.0,
                  wait_for_subscribers: float = 0.0, stop: Optional[threading.Event] = None,
-                 log: Optional[Callable[[str], None]] = None):
+                 log: Optional[Callable[[str], None]] = None, min_subscribers: int = 1):
         if rate < 0:
             raise ValueError('rate must be >= 0')
         self.node = node
@@ -522,6 +522,9 @@ class Player:
         self.depth = int(depth)
         self.start_delay = float(start_delay)
         self.wait_for_subscribers = float(wait_for_subscribers)
+        if int(min_subscribers) < 1:
+            raise ValueError('min_subscribers must be >= 1')
+        self.min_subscribers = int(min_subscribers)
         self.stop = stop or threading.Event()
         self.log = log or (lambda s: node.get_logger().info(s))
         self.published = 0
@@ -586,10 +589,12 @@ class Player:
             return
         deadline = time.monotonic() + self.wait_for_subscribers
         while time.monotonic() < deadline and not self.stop.is_set():
-            if all(p.get_subscription_count() > 0 for p in self._pubs.values()):
+            if all(p.get_subscription_count() >= self.min_subscribers
+                   for p in self._pubs.values()):
                 return
             time.sleep(0.02)
-        lonely = [p.topic_name for p in self._pubs.values() if p.get_subscription_count() == 0]
+        lonely = [p.topic_name for p in self._pubs.values()
+                  if p.get_subscription_count() < self.min_subscribers]
         if lonely:
             self.log(f'no subscriber yet on {", ".join(lonely)}; playing anyway')
 
@@ -807,11 +812,15 @@ def play_main(argv=None) -> int:
     ap.add_argument('--delay', type=float, default=0.0, help='seconds to wait before playing')
     ap.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
                     help='wait up to S seconds for a subscriber on every topic before playing')
+    ap.add_argument('--min-subscribers', type=int, default=1, metavar='K',
+                    help='with --wait-for-subscribers: wait for K subscribers per topic')
     ap.add_argument('--qos-depth', type=int, default=1000)
     ap.add_argument('--quiet', '-q', action='store_true')
     a = ap.parse_args(args_)
     if a.rate < 0:
         ap.error('--rate must be >= 0')
+    if a.min_subscribers < 1:
+        ap.error('--min-subscribers must be >= 1')
     try:
         remap = _parse_remaps(a.remap)
     except ValueError as exc:
@@ -832,7 +841,8 @@ def play_main(argv=None) -> int:
                                                                     file=sys.stderr))
             player = Player(node, a.bag, rate=a.rate, clock_hz=a.clock, loop=a.loop,
                             topics=a.topics, remap=remap, depth=a.qos_depth, start_delay=a.delay,
-                            wait_for_subscribers=a.wait_for_subscribers, stop=stop.event, log=log)
+                            wait_for_subscribers=a.wait_for_subscribers, stop=stop.event, log=log,
+                            min_subscribers=a.min_subscribers)
             n = player.run()
             if not a.quiet:
                 log(f'published {n} messages ({player.loops} pass(es))')

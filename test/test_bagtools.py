@@ -321,7 +321,8 @@ def test_record_and_play_clis(tmp_path):
         play = subprocess.Popen(_script('dgp-play') + [str(bag), '--rate', '20', '--remap',
                                                        '/cli_state:=/cli_played',
                                                        '--wait-for-subscribers', '20',
-                                                       '--delay', '1.0'],
+                                                       '--min-subscribers', '2',   # rec2 + us
+                                                       '--delay', '0.5'],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         procs.append(play)
         _, perr = play.communicate(timeout=60)
