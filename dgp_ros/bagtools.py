@@ -502,8 +502,8 @@ class Player:
     ``/clock`` with the bag time at this wall rate (``0`` = not at all; with ``rate=0`` a clock
     message precedes every message instead). ``remap``: {bag topic: published topic}.
     ``wait_for_subscribers``: before starting, wait up to this many seconds until every publisher
-    has at least ``min_subscribers`` subscribers (``0`` = do not wait). ``stop``: a ``threading.Event`` that ends
-    playback early. The player does not need an executor: publishing needs no spinning.
+    has at least ``min_subscribers`` subscribers (``0`` = do not wait). ``stop``: a
+    ``threading.Event`` that ends playback early. The player does not need an executor: publishing needs no spinning.
     """
 
     def __init__(self, node, path, rate: float = 1.0, clock_hz: float = 0.0, loop: bool = False,

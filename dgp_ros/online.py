@@ -75,12 +75,14 @@ Behaviour
   doubling; otherwise it refits at the current hyper-parameters. (Measured on the A320 approach
   from t = 0, 120 msg/s: without the doubling rule the first optimum, learned on 20 samples of
   near-trimmed flight, was kept until the 5th refit and the run's drag NMSE was 0.2; with it,
-  2.8e-5 in sync and 1.7e-4 in async mode.) In 'async' mode the fit runs in a background thread on a snapshot of
-  the buffer; ``process`` never waits for it. When the fit finishes, the samples that arrived
-  meanwhile are replayed into the new model with ``update``; the new model is swapped in under a
-  lock held only for the swap, and only if its certificate holds (paper/certified modes); a failed
-  or uncertified refit keeps the old model and is counted (``refits_failed``,
-  ``last_refit_error``). A successful refit is saved to ``model_path`` (if set), atomically.
+  2.8e-5 in sync and 1.7e-4 in async mode.) In 'async' mode the fit runs in a background
+  thread on a snapshot of the buffer; ``process`` never waits for it. When the fit finishes, the
+  samples that arrived meanwhile are replayed into the new model with ``update``; the new model is
+  swapped in under a lock held only for the swap, and only if its certificate holds
+  (paper/certified modes); a failed or uncertified refit keeps the old model and is counted
+  (``refits_failed``, ``last_refit_error``). A backlog longer than max(50, buffer_size / 4)
+  samples is absorbed by a fixed-hyper refit on a fresh snapshot instead of sample-by-sample
+  replay. A successful refit is saved to ``model_path`` (if set), atomically.
 * Sim time / bag loops: if a stamp goes backwards, the model and buffer are kept, the refit clock
   restarts at the new stamp and ``time_jumps_back`` is counted.
 * Loading: at construction, if ``model_path`` names an existing file it is loaded with
