@@ -477,14 +477,14 @@ class _BaseGP:
         rkhs_sq = np.zeros(len(self._elist))
         for m in range(self.N):
             parts = list(self._kparts(m, X, X)) if keep else []
-            if keep:
-                K = np.zeros((n, n))
-                for _, k in parts:
+            if keep and parts:
+                K = parts[0][1].copy()
+                for _, k in parts[1:]:
                     K += k
             else:
                 K = self._kmat(m, X, X)
             K[np.diag_indices(n)] += math.exp(self._hp['log_sn2'][m])
-            if not np.all(np.isfinite(K)):
+            if not math.isfinite(float(K.sum())):     # NaN/inf anywhere reach the sum
                 raise ValueError(f'kernel matrix of output {m} is not finite: hyper-parameters '
                                  f'or inputs out of range')
             L, j = _chol_jitter(K)
