@@ -243,24 +243,26 @@ class _BaseGP:
             return np.broadcast_to(hp['mean'] / hp['sy'], X.shape)
         return X * (hp['mean'] * hp['sx'] / hp['sy'])
 
-    def _kparts(self, m, X1, X2, hp=None):
-        """Output m's element kernels ``phi_e(x1) phi_e(x2) k_e(x1, x2)``: yields (e, (a, b))."""
+    def _kparts(self, m, X1, X2, hp=None, Kel=None):
+        """Output m's element kernels ``phi_e(x1) phi_e(x2) k_e(x1, x2)``: yields (e, (a, b)),
+        each a new array. ``Kel``: the raw element kernels from ``_cross_elems`` (X2 = the
+        training inputs), used instead of building them."""
         hp = self._hp if hp is None else hp
         for e in self._rows[m]:
             sf2 = math.exp(hp['log_sf2'][e])
             if sf2 == 0.0:
                 continue
-            k = se_ard(X1, X2, np.exp(hp['log_ls'][e]), sf2)
+            k = se_ard(X1, X2, np.exp(hp['log_ls'][e]), sf2) if Kel is None else Kel[e].copy()
             n = self._elist[e][1]
             if n is not None:
                 k *= X1[:, n][:, None]
                 k *= X2[:, n][None, :]
             yield e, k
 
-    def _kmat(self, m, X1, X2, hp=None):
+    def _kmat(self, m, X1, X2, hp=None, Kel=None):
         """Output m's kernel k^(m)(X1, X2), standardized. (a, b)"""
         K = None
-        for _, k in self._kparts(m, X1, X2, hp):
+        for _, k in self._kparts(m, X1, X2, hp, Kel):
             if K is None:
                 K = k
             else:
@@ -454,16 +456,16 @@ class _BaseGP:
         c = getattr(self, '_rkhs_cache', None)
         if c is not None and c[0] is self._alpha:
             return c[1]
-        hp = self._hp
         q = np.zeros(len(self._elist))
-        for e, (m, n) in enumerate(self._elist):
-            sf2 = math.exp(hp['log_sf2'][e])
-            if sf2 == 0.0 or n is None:
-                continue
-            a = self._X[:, n] * self._alpha[:, m]
-            q[e] = float(a @ se_ard(self._X, self._X, np.exp(hp['log_ls'][e]), sf2) @ a)
+        for m in range(self.N):
+            self._rkhs_of_parts(m, self._kparts(m, self._X, self._X), q)
         self._rkhs_cache = (self._alpha, q)
         return q
+
+    def _rkhs_of_parts(self, m, parts, out):
+        """``out[e] = alpha_m^T K_e alpha_m`` for output m's element kernels ``(e, K_e)``."""
+        for e, k in parts:
+            out[e] = float(self._alpha[:, m] @ (k @ self._alpha[:, m]))
 
     def _factorize(self):
         X = self._X
@@ -492,8 +494,7 @@ class _BaseGP:
             self._L.append(wc)
             self._jit[m] = j
             self._alpha[:, m] = wc.alpha()
-            for e, k in parts:
-                rkhs_sq[e] = float(self._alpha[:, m] @ (k @ self._alpha[:, m]))
+            self._rkhs_of_parts(m, parts, rkhs_sq)
             del parts, K
         self._rkhs_cache = (self._alpha, rkhs_sq) if keep else None
         self.jitter_ = float(self._jit.max())
@@ -572,17 +573,6 @@ class _BaseGP:
         K *= np.exp(hp['log_sf2'])
         return np.moveaxis(K, 2, 0)
 
-    def _ks(self, m, X, Kel):
-        """Output m's cross kernel k^(m)(X, X_train), (k, n), from ``_cross_elems``."""
-        if Kel is None:
-            return self._kmat(m, X, self._X)
-        Ks = None
-        for e in self._rows[m]:
-            n = self._elist[e][1]
-            k = Kel[e] if n is None else Kel[e] * X[:, n][:, None] * self._X[:, n][None, :]
-            Ks = k if Ks is None else Ks + k
-        return Ks
-
     def _raw_predict(self, Q, return_var, Kel=None):
         hp = self._hp
         X = Q / hp['sx']
@@ -592,7 +582,7 @@ class _BaseGP:
         wq = self._corr_weight(Q)
         var = np.zeros_like(X) if return_var else None
         for m in range(self.N):
-            Ks = self._ks(m, X, Kel)
+            Ks = self._kmat(m, X, self._X, Kel=Kel)
             mean[:, m] += wq * (Ks @ self._alpha[:, m])
             if return_var:
                 v = self._L[m].solve(Ks.T)
