@@ -567,14 +567,20 @@ class OnlineEstimator:
         elif self.config.refit_period_s > 0 and self._last_refit_stamp is not None and \
                 stamp - self._last_refit_stamp >= self.config.refit_period_s:
             due = True                                   # periodic (also retries a failed fit)
-        elif self._model is not None and 0 < self._opt_n and \
-                self._buf.size >= 2 * self._opt_n and self._consecutive_refit_failures == 0:
+        elif self._model is not None and 0 < self._opt_n and self._hypers_outgrown() and \
+                self._consecutive_refit_failures == 0:
             due = True                                   # the buffer doubled: re-learn hypers
         if not due:
             return False
         self._refit_requested = False
         self._last_refit_stamp = stamp
         return True
+
+    def _hypers_outgrown(self) -> bool:
+        """The buffer has at least doubled since the hyper-parameters were learned: the first
+        fit sees min_samples points of a possibly near-stationary start and its optimum can be
+        far off, so they are re-learned (20 -> 40 -> 80 ... while the buffer fills)."""
+        return self._buf.size >= 2 * self._opt_n
 
     def request_refit(self) -> Tuple[bool, str]:
         """Refit now (async: start it in the background). Returns (ok, message)."""
@@ -609,13 +615,10 @@ class OnlineEstimator:
             else:
                 self.refits_started += 1
                 k = self.refits_started
-                # also re-optimize while the buffer has at least doubled since the hyper-
-                # parameters were learned: the first fit sees min_samples points of a
-                # possibly near-stationary start and its optimum can be far off
                 optimize = (self._model is None or self._hyper is None or
                             (self.config.optimize_every_n_refits > 0 and
                              k % self.config.optimize_every_n_refits == 0) or
-                            self._buf.size >= 2 * self._opt_n)
+                            self._hypers_outgrown())
                 Q, T = self._buf.arrays()
                 job = dict(kind=kind, Q=Q, T=T, seq=self._sample_seq, optimize=optimize,
                            generation=self._generation, hyper=self._hyper,
