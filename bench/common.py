@@ -159,7 +159,10 @@ def machine_info() -> dict:
 
 
 def header_lines(title: str, script: str, quick: bool, seconds: Optional[float] = None) -> str:
+    """Section header: title, the command that generated it (``script``, plus ``--quick`` in
+    quick mode), machine, wall time."""
     mi = machine_info()
+    script = script + (' --quick' if quick else '')
     mode = ('quick mode: CI smoke test, small sizes, not the reference numbers' if quick
             else 'full mode')
     s = (f'## {title}\n\n'
@@ -298,6 +301,9 @@ def far_points(rng, lo, hi, k: int, factor: float = 100.0) -> np.ndarray:
 KINDS = ('ard', 'diag', 'full')
 MODES = ('none', 'paper', 'certified', 'projected')
 LABEL = {'ard': 'ARD-GP', 'diag': 'Diag-D-GP', 'full': 'Full-D-GP'}
+# plot styles shared by the scripts: line style per passivity mode, colour per model kind
+MODE_STYLE = {'none': '-', 'paper': ':', 'certified': '--', 'projected': '-.'}
+KIND_COLOR = {'ard': 'C0', 'diag': 'C1', 'full': 'C2'}
 
 
 def modes_for(kind: str) -> tuple:

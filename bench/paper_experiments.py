@@ -87,7 +87,7 @@ def part_a(a, data):
 def section_a(a, A, wall):
     st = A['stats']
     L = [C.header_lines('Paper experiment (a): trajectory protocol, JSBSim A320 approach',
-                        'bench/paper_experiments.py' + (' --quick' if a.quick else ''), a.quick,
+                        'bench/paper_experiments.py', a.quick,
                         wall)]
     L.append(f'One simulated approach (`simulate_approach(SimConfig())`, {A["Q"].shape[0]} samples '
              f'at 60 Hz, mass {A["mass"]:.0f} kg); inputs `[alpha, beta, V]`, outputs `[drag, '
@@ -191,7 +191,7 @@ def part_b(a, aero):
 def section_b(a, B, wall):
     ns, res = B['ns'], B['res']
     L = [C.header_lines('Paper experiment (b): data efficiency in the (alpha, beta, V) volume',
-                        'bench/paper_experiments.py' + (' --quick' if a.quick else ''), a.quick,
+                        'bench/paper_experiments.py', a.quick,
                         wall)]
     L.append(f'Training and test points uniform in the flown envelope alpha '
              f'{np.rad2deg(VOLUME_LO[0]):.1f}..{np.rad2deg(VOLUME_HI[0]):.1f} deg, beta '
@@ -224,17 +224,15 @@ def section_b(a, B, wall):
     L.append(C.md_table(['model', 'passivity'] + [f'slope {o}' for o in OUT_NAMES], rows))
     plt = C.plt()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5), sharex=True)
-    styles = {'none': '-', 'paper': ':', 'certified': '--', 'projected': '-.'}
-    colors = {'ard': 'C0', 'diag': 'C1', 'full': 'C2'}
     for j, ax in enumerate(axes):
         for c in COMBOS:
             A = [[r[j] for r in res[c][n]] for n in ns]
             med = [np.median(x) for x in A]
-            ax.loglog(ns, med, styles[c[1]], color=colors[c[0]], marker='o', ms=3,
+            ax.loglog(ns, med, C.MODE_STYLE[c[1]], color=C.KIND_COLOR[c[0]], marker='o', ms=3,
                       label=f'{C.LABEL[c[0]]} {c[1]}')
             if max(len(x) for x in A) > 1 and c[1] == 'none':
                 ax.fill_between(ns, [min(x) for x in A], [max(x) for x in A],
-                                color=colors[c[0]], alpha=0.12)
+                                color=C.KIND_COLOR[c[0]], alpha=0.12)
         ax.set_title(f'NMSE {OUT_NAMES[j]}')
         ax.set_xlabel('training samples n')
         ax.grid(True, which='both', alpha=0.3)
@@ -282,7 +280,7 @@ def part_c(a, A, B, aero):
 
 def section_c(a, A, B, Cc, wall):
     L = [C.header_lines('Paper experiment (c): passivity (dissipated power)',
-                        'bench/paper_experiments.py' + (' --quick' if a.quick else ''), a.quick,
+                        'bench/paper_experiments.py', a.quick,
                         wall)]
     lo, hi = Cc['lo'], Cc['hi']
     L.append(f'Models of the trajectory protocol (a). "Inside": {Cc["k"]} uniform points in the '
@@ -362,7 +360,7 @@ def section_c(a, A, B, Cc, wall):
 # ============================================================================ (d) summary
 def section_d(a, A, B, Cc, wall):
     L = [C.header_lines('Passivity modes across both protocols (summary)',
-                        'bench/paper_experiments.py' + (' --quick' if a.quick else ''), a.quick,
+                        'bench/paper_experiments.py', a.quick,
                         wall)]
     ref = A['stats'][('full', 'none')]['nmse']
     L.append('NMSE per output (drag / -side / lift) and its ratio to the unconstrained Full-D-GP '

@@ -268,6 +268,20 @@ def bench_node(a, buffers, n_msgs, tmpdir):
         m.save(path)
         return path, fit_s, m.certificate()
 
+    def row(n, wall, lat, d, **extra):
+        """One table row: rate, latency percentiles and the invariant counters."""
+        return dict(rate=n / wall, p50=np.percentile(lat, 50), p99=np.percentile(lat, 99),
+                    max=lat.max(), fallbacks=d['passivity_fallbacks'], trained=d['trained'],
+                    lat=lat, **extra)
+
+    def worst_case_cfg(kind, mode, b, **kw):
+        """Warm-started from the model file, every sample learned, no refits."""
+        base = dict(model=kind, passivity=mode, buffer_size=b, min_samples=20,
+                    refit_period_s=0.0, selection='all', refit_mode='sync',
+                    model_path=files[(kind, mode, b)], min_sample_interval_s=0.0)
+        base.update(kw)
+        return EstimatorConfig(**base)
+
     scen = [('full', 'projected', b) for b in buffers]
     if not a.quick:
         scen += [('full', 'none', 500), ('diag', 'projected', 500), ('ard', 'projected', 500),
@@ -280,36 +294,28 @@ def bench_node(a, buffers, n_msgs, tmpdir):
         # paper/certified: a stale certificate (after update) is re-proved by a refit; the
         # node does that in a background thread ('async'), never on the message path
         rmode = 'async' if mode in ('paper', 'certified') else 'sync'
-        cfg = EstimatorConfig(model=kind, passivity=mode, buffer_size=b, min_samples=20,
-                              refit_period_s=0.0, selection='all', refit_mode=rmode,
-                              model_path=path, min_sample_interval_s=0.0)
-        est = OnlineEstimator(cfg)
+        est = OnlineEstimator(worst_case_cfg(kind, mode, b, refit_mode=rmode))
         assert est.trained and not est.load_error, est.load_error
         stream(est, 50, 0)                                  # warm-up (caches, first names)
         lat, wall, _ = stream(est, n_msgs, 50)
         d = est.diagnostics()
-        out[(kind, mode, 'all', b)] = dict(rate=n_msgs / wall, p50=np.percentile(lat, 50),
-                                           p99=np.percentile(lat, 99), max=lat.max(),
-                                           fit_s=fit_s, fallbacks=d['passivity_fallbacks'],
-                                           trained=d['trained'], lat=lat,
-                                           note=(f'async re-proofs: {d["refits_ok"]} ok, '
-                                                 f'{d["refits_failed"]} failed'
-                                                 if rmode == 'async' else ''))
+        out[(kind, mode, 'all', b)] = row(n_msgs, wall, lat, d, fit_s=fit_s,
+                                          note=(f'async re-proofs: {d["refits_ok"]} ok, '
+                                                f'{d["refits_failed"]} failed'
+                                                if rmode == 'async' else ''))
         est.close()
     # a 1 kHz stream (1 ms stamps) with the default learning limit (min_sample_interval_s =
     # 0.01: every message answered, one in ten learned), the other settings as above
     b1 = 500 if 500 in buffers else buffers[-1]
-    cfg = EstimatorConfig(model='full', passivity='projected', buffer_size=b1, min_samples=20,
-                          refit_period_s=0.0, selection='all', refit_mode='sync',
-                          model_path=files[('full', 'projected', b1)])
-    est = OnlineEstimator(cfg)
+    est = OnlineEstimator(worst_case_cfg('full', 'projected', b1,
+                                         min_sample_interval_s=EstimatorConfig().
+                                         min_sample_interval_s))
     stream(est, 50, 0, stamp_hz=1000.0)
     lat, wall, _ = stream(est, n_msgs, 50, stamp_hz=1000.0)
     d = est.diagnostics()
-    out[('full', 'projected', '1 kHz, learn <= 100 Hz', b1)] = dict(
-        rate=n_msgs / wall, p50=np.percentile(lat, 50), p99=np.percentile(lat, 99),
-        max=lat.max(), fit_s=None, fallbacks=d['passivity_fallbacks'], trained=d['trained'],
-        lat=lat, note=f'{d["samples_rate_limited"]} rate-limited, {d["samples_added"]} added')
+    out[('full', 'projected', '1 kHz, learn <= 100 Hz', b1)] = row(
+        n_msgs, wall, lat, d, fit_s=None,
+        note=f'{d["samples_rate_limited"]} rate-limited, {d["samples_added"]} added')
     est.close()
     if not a.quick:
         b = 200
@@ -322,19 +328,14 @@ def bench_node(a, buffers, n_msgs, tmpdir):
         d = est.diagnostics()
         est.wait_for_refit(120)
         d2 = est.diagnostics()
-        out[('default', cfg.passivity, 'novelty', b)] = dict(
-            rate=n2 / wall, p50=np.percentile(lat, 50), p99=np.percentile(lat, 99),
-            max=lat.max(), fit_s=d2['last_refit_duration_s'], fallbacks=d['passivity_fallbacks'],
-            trained=d['trained'], lat=lat, diag=diag_t, refits=d2['refits_ok'],
+        out[('default', cfg.passivity, 'novelty', b)] = row(
+            n2, wall, lat, d, fit_s=d2['last_refit_duration_s'], diag=diag_t,
+            refits=d2['refits_ok'],
             refits_started=d2['refits_ok'] + d2['refits_failed'],
             skipped=d['samples_skipped'], added=d['samples_added'])
         est.close()
     # profile the message path at buffer 500 (or the largest quick buffer)
-    b = 500 if 500 in buffers else buffers[-1]
-    cfg = EstimatorConfig(model='full', passivity='projected', buffer_size=b, min_samples=20,
-                          refit_period_s=0.0, selection='all', refit_mode='sync',
-                          model_path=files[('full', 'projected', b)])
-    est = OnlineEstimator(cfg)
+    est = OnlineEstimator(worst_case_cfg('full', 'projected', b1))
     prof = profile_top(lambda: stream(est, 200 if a.quick else 1000, 0), 10)
     est.close()
     return out, prof
@@ -437,7 +438,7 @@ def main(argv=None) -> int:
 
     # ------------------------------------------------------------------ section
     L = [C.header_lines('Speed: dgp_ros.gp vs scikit-learn and the Cholesky floor; the node',
-                        'bench/speed.py' + (' --quick' if a.quick else ''), a.quick, wall)]
+                        'bench/speed.py', a.quick, wall)]
     L.append(f'Data: (alpha, beta, V) uniform in the flown envelope, forces from `FrozenAero` + 1 % '
              f'noise, N = {N_OUT} outputs. Hyper-parameters optimized once per kind on 300 samples '
              f'and kept fixed (`fit(optimize=False)`, passivity none) at every n. BLAS '

@@ -117,12 +117,10 @@ def main(argv=None) -> int:
     # ---------------------------------------------------------------- plots
     plt = C.plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
-    styles = {'none': '-', 'paper': ':', 'certified': '--', 'projected': '-.'}
-    colors = {'ard': 'C0', 'diag': 'C1', 'full': 'C2'}
     for j, ax in enumerate(axes):
         for c in combos:
             med = [np.median([r[j] for r in res[c][n]]) for n in ns]
-            ax.loglog(ns, med, styles[c[1]], color=colors[c[0]], marker='o', ms=3,
+            ax.loglog(ns, med, C.MODE_STYLE[c[1]], color=C.KIND_COLOR[c[0]], marker='o', ms=3,
                       label=f'{C.LABEL[c[0]]} {c[1]}')
         ax.set_xlabel('training samples n')
         ax.set_title(f'joint {j + 1} friction torque')
@@ -134,7 +132,7 @@ def main(argv=None) -> int:
 
     # ---------------------------------------------------------------- section
     lines = [C.header_lines('Synthetic 2-DOF friction (Coulomb + Stribeck + viscous + coupling)',
-                            'bench/synthetic_friction.py' + (' --quick' if a.quick else ''),
+                            'bench/synthetic_friction.py',
                             a.quick, wall)]
     lines.append(
         f'Truth: smoothed Coulomb + Stribeck + viscous per joint, a symmetric positive cross-damping '
