@@ -1,14 +1,21 @@
-"""Pure numpy/scipy Dissipative Gaussian Processes (no ROS import anywhere in this package).
+"""Dissipative Gaussian Processes in pure numpy/scipy (no ROS import anywhere in this package).
 
-Models (DESIGN "Core API"): ``FullDGP``, ``DiagDGP``, ``ArdGP`` with fit / predict /
-damping_matrix / certificate / update / save / load. See ``models`` for units and shapes and
-``passivity`` / ``verify`` for the passivity guarantees (docs/PASSIVITY.md).
+Estimators (scikit-learn shape): ``FullDGP``, ``DiagDGP``, ``ArdGP`` with fit / predict /
+damping_matrix / certificate / recertify / update / save / load.
+
+Pieces, one module each: ``kernels`` (the SE kernel, element structure), ``means`` (passive prior
+means), ``posterior`` (exact inference), ``hyper`` (hyper-parameter learning), ``passivity`` (the
+registry of passivity modes and their policies; ``certified`` and ``verify`` for the structural
+proof), ``persistence`` (model files), ``models`` (the estimators).
 """
-from .kernels import se_ard, se_bound
-from .models import (FORMAT_VERSION, ArdGP, DiagDGP, FullDGP, load_model, make_model,
-                     prior_mean_diag)
-from .passivity import Certificate, copositivity_margin, project_passive
+from .kernels import KINDS, se_ard, se_bound
+from .means import PRIORS, prior_mean_diag
+from .models import ArdGP, DiagDGP, FullDGP, make_model, model_class
+from .passivity import (PASSIVITY_MODES, POLICIES, Certificate, copositivity_margin, modes_for,
+                        passive_tolerance, policy_class, project_passive)
+from .persistence import FORMAT_VERSION, load_model
 
-__all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'load_model', 'prior_mean_diag',
-           'Certificate', 'copositivity_margin', 'project_passive', 'se_ard', 'se_bound',
-           'FORMAT_VERSION']
+__all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class', 'load_model',
+           'prior_mean_diag', 'Certificate', 'copositivity_margin', 'project_passive',
+           'passive_tolerance', 'se_ard', 'se_bound', 'FORMAT_VERSION', 'KINDS', 'PRIORS',
+           'PASSIVITY_MODES', 'POLICIES', 'modes_for', 'policy_class']

@@ -1,33 +1,95 @@
 """Cholesky factor of a sliding-window kernel matrix, updated in place: O(n^2) per sample.
 
 ``WindowCholesky`` holds the lower factor ``L`` of ``K`` (n x n) in a preallocated column-major
-buffer; the active block starts at element ``(s, s)``. LAPACK reads it through the leading
-dimension (``trtrs`` with ``lda`` = capacity), so
+buffer (leading dimension = ``capacity``); the active block starts at row ``r0``, column 0.
+LAPACK reads it in place through the leading dimension, so
 
 * appending a sample writes one new row (one triangular solve, no copy of the factor);
-* dropping the oldest sample folds its column into the rest with Givens rotations (BLAS
-  ``drot`` on the buffer, in place) and moves the start to ``(s + 1, s + 1)``;
-* the block is moved back to ``(0, 0)`` once every ``capacity - n`` drops (amortized O(n)).
+* dropping the oldest sample is a rank-one update ``L' L'^T = L22 L22^T + x x^T`` (``x = L[1:, 0]``)
+  done as the LQ factorization of the lower-Hessenberg ``N = L[1:, :] = [x | L22]`` by adjacent
+  plane rotations. All rotations follow in O(n) from ``p = L22^-1 x`` (one triangular solve):
+  with ``t_k = 1 + p_0^2 + ... + p_k^2``, rotation ``k`` (columns ``k, k+1`` of ``N``) has
+  ``c_k = (-1)^k p_k / sqrt(t_k)``, ``s_k = sqrt(t_(k-1) / t_k)`` (Gill, Golub, Murray, Saunders
+  1974). They are applied by LAPACK ``dlasr`` (a compiled loop over a whole sequence of rotations,
+  no Python per column) in panels of ``_PANEL`` columns, each to the rows at or below the panel.
+  ``[L' 0] = N Q``: the new factor is ``N``'s first n-1 columns, i.e. the block moves down one row;
+* the block is moved back to row 0 once every ``capacity - n`` drops (amortized O(n)).
+
+If ``p`` is not finite (a singular factor), or scipy's Cython LAPACK is not reachable, the drop
+falls back to the same LQ with data-driven Givens rotations (one BLAS ``drot`` per column, ~2x
+slower at n = 1000), which never divide by the diagonal.
+
+Only the lower triangle of the block is meaningful, and nothing outside it is ever read into it
+(LAPACK reads the lower triangle only; a row's rotations ``k <= i`` touch columns ``<= i + 1``
+only), so the rest of the buffer may hold anything, even NaN: the upper triangle of the kernel a
+factor was computed in place from, or uninitialized memory (buffers are ``np.empty``).
 
 It also carries ``z = L^-1 r`` for one right-hand side ``r`` (the training residual of one
-output) through appends and rotations, so ``alpha = K^-1 r = L^-T z`` costs one triangular solve
-per update instead of two.
+output): ``z`` rides as one extra row under ``N`` through the same rotations, so
+``alpha = K^-1 r = L^-T z`` costs one triangular solve per update instead of two.
 
-Pure numpy/scipy; used by ``models._BaseGP`` (one instance per output).
+Pure numpy/scipy: ``dlasr`` and ``dpotrf`` are taken from scipy's public Cython LAPACK
+(``scipy.linalg.cython_lapack``) through ctypes, because scipy's f2py wrappers of them take no
+leading dimension (they would copy the block). Used by ``models._BaseGP`` (one instance per output).
 """
 from __future__ import annotations
 
+import ctypes
 import math
 from typing import Optional
 
 import numpy as np
+import scipy.linalg.cython_lapack as _cython_lapack
 from scipy.linalg import LinAlgError
 from scipy.linalg.blas import drot
-from scipy.linalg.lapack import dtrtrs
+from scipy.linalg.lapack import dpotrf, dtrtrs
 
-__all__ = ['WindowCholesky']
+__all__ = ['WindowCholesky', 'cholesky_in_place']
 
 _F8 = np.dtype(np.float64).itemsize
+_PANEL = 64         # columns of N per dlasr call (rows above the panel are skipped)
+
+
+def _lapack(name: str, nargs: int):
+    """C function pointer of ``scipy.linalg.cython_lapack.<name>`` (all arguments pointers)."""
+    cap = _cython_lapack.__pyx_capi__[name]
+    get_name = ctypes.pythonapi.PyCapsule_GetName
+    get_name.restype, get_name.argtypes = ctypes.c_char_p, [ctypes.py_object]
+    get_ptr = ctypes.pythonapi.PyCapsule_GetPointer
+    get_ptr.restype, get_ptr.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
+    return ctypes.CFUNCTYPE(None, *([ctypes.c_void_p] * nargs))(get_ptr(cap, get_name(cap)))
+
+
+try:
+    _dlasr = _lapack('dlasr', 9)    # side pivot direct m n c s a lda
+    _dpotrf = _lapack('dpotrf', 5)  # uplo n a lda info
+except (AttributeError, KeyError, TypeError, ValueError):     # no usable Cython LAPACK capsules:
+    _dlasr = _dpotrf = None         # Givens drops (one drot per column), dpotrf through f2py
+_CH = {k: ctypes.c_char_p(k.encode()) for k in 'RVFL'}
+_VP = ctypes.c_void_p
+
+
+def cholesky_in_place(A: np.ndarray, n: Optional[int] = None) -> int:
+    """Lower Cholesky factor of the top-left ``n x n`` block of the F-ordered 2-D array ``A``
+    (LAPACK ``dpotrf``, leading dimension ``A.shape[0]``), written over its lower triangle; the
+    strict upper triangle is left as it was. No copy. Returns LAPACK's ``info`` (0: success,
+    ``k > 0``: the leading minor of order k is not positive definite)."""
+    if A.dtype != np.float64 or A.ndim != 2 or not A.flags.f_contiguous:
+        raise ValueError('A must be an F-ordered 2-D float64 array')
+    n = A.shape[1] if n is None else int(n)
+    if not 0 <= n <= min(A.shape):
+        raise ValueError(f'n = {n} does not fit in an array of shape {A.shape}')
+    if n == 0:
+        return 0
+    if _dpotrf is None:
+        c, info = dpotrf(A[:n, :n], lower=1, clean=0, overwrite_a=1)
+        if not np.shares_memory(c, A):
+            A[:n, :n] = c
+        return int(info)
+    nn, lda, info = ctypes.c_int(n), ctypes.c_int(A.shape[0]), ctypes.c_int(0)
+    _dpotrf(_CH['L'], ctypes.byref(nn), _VP(A.ctypes.data), ctypes.byref(lda),
+            ctypes.byref(info))
+    return int(info.value)
 
 
 class WindowCholesky:
@@ -43,8 +105,9 @@ class WindowCholesky:
         ``L^-1 r`` if already known (restoring a saved factor); computed if None.
     limit : int or None
         Largest number of samples the factor will ever hold at once (window + 1 during an
-        update), or None for unbounded growth. Sizes the buffer: ``limit + slack`` when given
-        (slack = max(8, limit // 8) drops between two moves of the block), else grown by 1.5x.
+        update), or None for unbounded growth. Sizes the buffer: ``limit + slack`` rows when
+        given (slack = max(8, limit // 8) drops between two moves of the block), else grown by
+        1.5x.
     """
 
     def __init__(self, L: np.ndarray, r: np.ndarray, limit: Optional[int] = None,
@@ -53,47 +116,110 @@ class WindowCholesky:
         n = L.shape[0]
         if L.ndim != 2 or L.shape[1] != n or n < 1:
             raise ValueError(f'L must be a non-empty square matrix, got shape {L.shape}')
-        self._limit = None if limit is None else max(int(limit), n)
-        self._slack = 8 if limit is None else max(8, self._limit // 8)
-        cap = n if limit is None else min(self._limit + self._slack, n + max(8, n // 2))
-        self._alloc(cap)
+        self._set_limit(limit, n)
+        rows, cols = self._sizes(n)
+        self._alloc(rows, cols)
         self._n = n
-        self._view(n)[:n, :] = L
-        # z as carried by an earlier instance (a saved model): bit-identical continuation
-        self._z = (self.solve(np.asarray(r, dtype=float)) if z is None
-                   else np.array(z, dtype=float).reshape(n))
+        self._view(n)[:n, :] = L                  # upper triangle: see the module docstring
+        self._finish(r, z)
+
+    @classmethod
+    def workspace(cls, n: int, limit: Optional[int] = None) -> np.ndarray:
+        """An (uninitialized) F-ordered buffer in which an ``n``-sample kernel can be built (its
+        lower triangle in the top-left ``n x n`` block is enough), factored with
+        ``cholesky_in_place`` and handed to ``adopt`` without any copy, with the room ``limit``
+        asks for (see the class parameters)."""
+        self = cls.__new__(cls)
+        self._set_limit(limit, n)
+        rows, cols = self._sizes(n)
+        return np.empty((rows, cols + 1), order='F')
+
+    @classmethod
+    def adopt(cls, A: np.ndarray, r: np.ndarray, n: Optional[int] = None,
+              limit: Optional[int] = None, z: Optional[np.ndarray] = None) -> 'WindowCholesky':
+        """Take ownership of an F-ordered buffer whose top-left ``n x n`` lower triangle holds the
+        factor (e.g. after ``cholesky_in_place``); everything else may hold anything. No copy if
+        ``A`` is F-contiguous float64 with at least ``n + 1`` rows and ``n + 1`` columns
+        (``workspace`` makes such buffers); otherwise the factor is copied into a new buffer.
+        The caller must not use ``A`` afterwards."""
+        n = A.shape[0] if n is None else int(n)
+        if A.ndim != 2 or n < 1 or n > min(A.shape):
+            raise ValueError(f'cannot adopt a {n} x {n} factor from an array of shape {A.shape}')
+        self = cls.__new__(cls)
+        self._set_limit(limit, n)
+        if (A.dtype == np.float64 and A.flags.f_contiguous and A.shape[0] > n
+                and A.shape[1] > n):
+            self._cap, self._cols = A.shape[0], A.shape[1] - 1
+            self._buf = A.reshape(-1, order='F')
+            self._r0 = 0
+        else:
+            rows, cols = self._sizes(n)
+            self._alloc(rows, cols)
+            self._view(n)[:n, :] = A[:n, :n]
+        self._n = n
+        self._finish(r, z)
+        return self
 
     # ------------------------------------------------------------------ storage
-    def _alloc(self, cap: int) -> None:
-        self._cap = int(cap)
-        # one extra column: the (cap, n) LAPACK view of a block starting at (s, s) runs up to
-        # s + cap * (s + n) elements into the buffer
-        self._buf = np.zeros(self._cap * (self._cap + 1))
-        self._s = 0
+    def _set_limit(self, limit, n):
+        self._limit = None if limit is None else max(int(limit), n)
+        self._slack = 8 if limit is None else max(8, self._limit // 8)
 
-    def _view(self, ncols: int, s: Optional[int] = None) -> np.ndarray:
-        """Column-major (capacity, ncols) view whose top-left element is (s, s): rows 0..n-1 of
-        it are the factor. F-contiguous, so f2py hands it to LAPACK without a copy."""
-        s = self._s if s is None else s
-        return np.ndarray((self._cap, ncols), dtype=float, buffer=self._buf,
-                          offset=_F8 * (s + s * self._cap), strides=(_F8, _F8 * self._cap))
+    def _sizes(self, n):
+        """(rows, columns) of a buffer for n samples: rows = capacity, columns = the most
+        samples it can hold."""
+        if self._limit is None:
+            cols = n + max(8, n // 2)
+            return cols + self._slack, cols
+        return self._limit + self._slack, self._limit
 
-    def _make_room(self) -> None:
-        """Ensure row/column s + n exists (for one more sample): move the block to (0, 0), or
-        grow the buffer."""
+    def _alloc(self, rows: int, cols: int) -> None:
+        self._cap, self._cols = int(rows), int(cols)
+        # one extra column: the (cap, ncols) LAPACK view of a block starting at row r0 runs
+        # r0 elements past column ncols - 1
+        self._buf = np.empty(self._cap * (self._cols + 1))
+        self._r0 = 0
+
+    def _finish(self, r, z):
         n = self._n
-        if self._s + n + 1 <= self._cap:
+        d = self._diag_view()
+        neg = d < 0                                 # the rotations keep a positive diagonal
+        if np.any(neg):
+            v = self._view(n)[:n, :]
+            v[:, neg] *= -1.0
+        self._z = (self.solve(np.asarray(r, dtype=float)) if z is None
+                   else np.array(z, dtype=float).reshape(n))
+        if z is not None and np.any(neg):
+            self._z[neg] *= -1.0
+        self._cs = np.empty(0)
+
+    def _view(self, ncols: int, r0: Optional[int] = None) -> np.ndarray:
+        """Column-major (capacity, ncols) view whose top-left element is (r0, 0): rows 0..n-1
+        of it are the factor. F-contiguous, so f2py hands it to LAPACK without a copy."""
+        r0 = self._r0 if r0 is None else r0
+        return np.ndarray((self._cap, ncols), dtype=float, buffer=self._buf,
+                          offset=_F8 * r0, strides=(_F8, _F8 * self._cap))
+
+    def _diag_view(self) -> np.ndarray:
+        n, cap = self._n, self._cap
+        return self._buf[self._r0:self._r0 + n * (cap + 1):cap + 1][:n]
+
+    def _make_room(self, column: bool = True) -> None:
+        """Ensure row r0 + n exists, and column n with ``column`` (one more sample; a drop only
+        needs the row, for z): move the block to row 0, or grow the buffer."""
+        n = self._n
+        if self._r0 + n + 1 <= self._cap and (n + 1 <= self._cols or not column):
             return
         block = self._view(n)[:n, :].copy(order='F')
         need = n + 1
-        if need > self._cap - self._slack // 2:            # nearly full: grow (up to the limit)
-            cap = max(need + self._slack, int(1.5 * self._cap))
+        if (column and need > self._cols) or need > self._cap - self._slack // 2:   # grow
+            cols = max(need + self._slack, int(1.5 * self._cols))
             if self._limit is not None:
-                cap = min(cap, self._limit + self._slack)
-            cap = max(cap, need)
-            if cap != self._cap:
-                self._alloc(cap)
-        self._s = 0
+                cols = min(cols, self._limit)
+            cols = max(cols, need)
+            self._alloc(cols + self._slack, cols)
+        else:
+            self._r0 = 0
         self._view(n)[:n, :] = block
 
     # ------------------------------------------------------------------ read access
@@ -107,12 +233,13 @@ class WindowCholesky:
 
     @property
     def L(self) -> np.ndarray:
-        """The factor as a new (n, n) lower-triangular array."""
-        return np.tril(self._view(self._n)[:self._n, :])
+        """The factor as a new (n, n) lower-triangular array (F-ordered)."""
+        L = self._view(self._n)[:self._n, :].copy(order='F')
+        L[np.triu_indices(self._n, 1)] = 0.0
+        return L
 
     def diag(self) -> np.ndarray:
-        v = self._view(self._n)
-        return v[np.arange(self._n), np.arange(self._n)].copy()
+        return self._diag_view().copy()
 
     @property
     def z(self) -> np.ndarray:
@@ -147,38 +274,80 @@ class WindowCholesky:
         l = self.solve(c)
         lnn = math.sqrt(max(d - float(l @ l), floor))
         self._make_room()
-        n = self._n
-        v = self._view(n + 1)
-        v[n, :n] = l
-        v[n, n] = lnn
+        n, cap = self._n, self._cap
+        o = self._r0 + n
+        row = self._buf[o:o + cap * n + 1:cap]      # row r0 + n, columns 0..n
+        row[:n] = l
+        row[n] = lnn
         self._z = np.append(self._z, (r_new - float(l @ self._z)) / lnn)
         self._n = n + 1
 
     def drop_first(self) -> None:
-        """Remove the oldest sample: ``K[1:, 1:] = L21 L21^T + L22 L22^T``, a rank-one update
-        of ``L22`` by Givens rotations (in place, BLAS drot per column), applied to ``z`` too."""
-        n, cap, s, buf = self._n, self._cap, self._s, self._buf
+        """Remove the oldest sample: ``K[1:, 1:] = L21 L21^T + L22 L22^T``, a rank-one update of
+        ``L22`` (see the module docstring), applied to ``z`` too."""
+        n = self._n
         if n < 2:
             raise ValueError('cannot drop the only sample')
-        o0 = s + s * cap
-        x = buf[o0 + 1:o0 + n].copy()          # L[1:, 0]
-        z = self._z[1:].tolist()
-        zc = float(self._z[0])
-        xitem, bitem, hypot = x.item, buf.item, math.hypot
-        for k in range(n - 1):
-            xk = xitem(k)
-            if xk == 0.0:
+        self._make_room(column=False)               # row r0 + n carries z through the rotations
+        cap, r0, buf = self._cap, self._r0, self._buf
+        m = n - 1
+        zrow = buf[r0 + n:r0 + n + cap * (n - 1) + 1:cap]
+        zrow[:] = self._z
+        cs = self._rotations(m) if _dlasr is not None else None
+        if cs is None:
+            self._drop_givens(m)
+        else:
+            ci = [ctypes.c_int(0) for _ in range(3)]
+            base = buf.ctypes.data
+            cp, sp = cs.ctypes.data, cs.ctypes.data + _F8 * cs.shape[1]
+            ci[2].value = cap
+            for j0 in range(0, m, _PANEL):
+                w = min(_PANEL, m - j0)
+                ci[0].value = n - j0                # rows j0..m-1 of N and the z row
+                ci[1].value = w + 1                 # columns j0..j0+w of N
+                _dlasr(_CH['R'], _CH['V'], _CH['F'], ctypes.byref(ci[0]), ctypes.byref(ci[1]),
+                       _VP(cp + _F8 * j0), _VP(sp + _F8 * j0),
+                       _VP(base + _F8 * ((r0 + 1 + j0) + j0 * cap)), ctypes.byref(ci[2]))
+        self._z = zrow[:m].copy()
+        self._r0 = r0 + 1
+        self._n = m
+
+    def _rotations(self, m: int) -> Optional[np.ndarray]:
+        """(2, m) array of the drop's rotations (c, s) from ``p = L22^-1 x``, or None if p is
+        not finite (singular or overflowing)."""
+        cap, r0, buf = self._cap, self._r0, self._buf
+        L22 = np.ndarray((cap, m), dtype=float, buffer=buf, offset=_F8 * (r0 + 1 + cap),
+                         strides=(_F8, _F8 * cap))
+        x = np.array(buf[r0 + 1:r0 + 1 + m]).reshape(m, 1)
+        p, info = dtrtrs(L22, x, lower=1, overwrite_b=1)
+        if info != 0:
+            return None
+        p = p[:, 0]
+        if self._cs.shape != (2, m):
+            self._cs = np.empty((2, m))
+        c, s = self._cs
+        t = np.cumsum(p * p)
+        t += 1.0
+        if not math.isfinite(t[-1]):
+            return None
+        np.divide(p, np.sqrt(t), out=c)
+        c[1::2] *= -1.0                             # the carried column flips sign each step
+        np.divide(t[:-1], t[1:], out=s[1:])
+        s[0] = 1.0 / t[0]
+        np.sqrt(s, out=s)
+        return self._cs
+
+    def _drop_givens(self, m: int) -> None:
+        """Fallback: the same LQ with rotations computed from the data, column by column."""
+        cap, r0, buf = self._cap, self._r0, self._buf
+        item, hypot = buf.item, math.hypot
+        for k in range(m):
+            o = (r0 + 1 + k) + k * cap              # N[k, k], the carried column at row k
+            a, b = item(o), item(o + cap)
+            rr = hypot(a, b)
+            if rr == 0.0:
                 continue
-            j = s + 1 + k
-            o = j + j * cap                     # flat index of the diagonal element (j, j)
-            lkk = bitem(o)
-            rr = hypot(lkk, xk)
-            c, sn = lkk / rr, xk / rr
-            drot(buf, x, c, sn, n=n - 1 - k, offx=o, offy=k, overwrite_x=1, overwrite_y=1)
-            zk = z[k]
-            z[k] = c * zk + sn * zc
-            zc = c * zc - sn * zk
-        z = np.array(z)
-        self._s = s + 1
-        self._n = n - 1
-        self._z = z
+            # rows k..m-1 of N and the z row: m - k + 1 entries of columns k and k + 1
+            drot(buf, buf, a / rr, b / rr, n=m - k + 1, offx=o, offy=o + cap,
+                 overwrite_x=1, overwrite_y=1)
+            buf[o + cap] = 0.0

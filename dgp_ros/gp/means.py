@@ -1,0 +1,333 @@
+"""Prior means of the damping force: passive by construction (the paper's Assumption 2).
+
+A D-GP prior mean is ``m_tau(qd) = diag(m_d(qd)) qd`` with ``m_d(qd) >= 0`` element-wise, so it
+dissipates ``sum_n m_d,n(qd) qd_n^2 >= 0`` for every ``qd``. Optionally a per-joint constant
+``bias`` ``b`` (sensor offset, model error) is learned with it; it is *not* dissipative, so it is
+kept apart from the damping force: the data are modelled as ``tau = D(qd) qd + b``, the published
+damping force is ``D(qd) qd``, and ``b`` is reported separately.
+
+* :class:`ViscousMean` -- ``m_d`` constant per joint (least squares, clamped at 0): the paper's
+  prior.
+* :class:`FrictionMean` -- Coulomb + viscous (+ Stribeck) per joint,
+  ``m_d(v) v = F_v v + F_c tanh(v / eps) + F_s tanh(v / eps) exp(-(v / v_s)^2)`` with
+  ``F >= 0`` (non-negative least squares), so ``m_d(v) >= 0`` and it is even and non-increasing
+  in ``|v|``: its range over a box is read off the box corners nearest to and farthest from 0.
+  The smoothing scales ``eps`` and ``v_s`` are chosen per joint from a small grid by the residual.
+* :class:`ConstantMean` -- a constant force per output (the ARD baseline; no damping structure).
+
+Every mean takes and returns model units: ``Qd`` (k, N) velocities, forces (k, N).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+__all__ = ['PriorMean', 'ViscousMean', 'FrictionMean', 'ConstantMean', 'make_mean',
+           'mean_from_dict', 'prior_mean_diag', 'PRIORS']
+
+PRIORS = ('viscous', 'friction', 'friction+stribeck')
+
+
+def prior_mean_diag(Qd, Tau) -> np.ndarray:
+    """Least-squares diagonal prior damping ``m_dn = <qd_n, tau_n> / <qd_n, qd_n>``, clamped at 0.
+
+    Qd, Tau: (n, N) (n may be 0). Returns (N,), in units of tau per unit qd. A dimension with
+    no excitation (``<qd_n, qd_n> = 0``) gets 0.
+    """
+    from ._validation import as_matrix
+    Qd = as_matrix(Qd, 'Qd', allow_empty=True)
+    Tau = as_matrix(Tau, 'Tau', Qd.shape[1], allow_empty=True)
+    if Qd.shape[0] != Tau.shape[0]:
+        raise ValueError(f'Qd has {Qd.shape[0]} samples but Tau has {Tau.shape[0]}')
+    num = np.einsum('ij,ij->j', Qd, Tau)
+    den = np.einsum('ij,ij->j', Qd, Qd)
+    out = np.zeros(Qd.shape[1])
+    ok = den > 0
+    out[ok] = num[ok] / den[ok]
+    return np.maximum(out, 0.0)
+
+
+class PriorMean:
+    """Base class. Subclasses set ``name`` and implement ``fit``, ``force``, ``diag``."""
+
+    name = ''
+    has_damping = True
+
+    def __init__(self, bias: bool = False):
+        self.bias_enabled = bool(bias)
+        self.bias = None          # (N,) after fit: zeros unless ``bias_enabled``
+
+    @property
+    def N(self) -> int:
+        return self.bias.size
+
+    def __call__(self, Qd: np.ndarray) -> np.ndarray:
+        """The prior of the measured force, damping part plus bias, (k, N)."""
+        return self.force(Qd) + self.bias
+
+    def force(self, Qd: np.ndarray) -> np.ndarray:
+        """The damping part ``diag(m_d(qd)) qd``, (k, N)."""
+        return self.diag(Qd) * Qd
+
+    def diag(self, Qd: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def diag_bounds(self, lo: np.ndarray, hi: np.ndarray):
+        """Range ``(dlo, dhi)`` of ``m_d`` over boxes ``[lo, hi]`` (B, N) each; (B, N) each."""
+        raise NotImplementedError  # pragma: no cover
+
+    def diag_inf(self) -> np.ndarray:
+        """``inf_qd m_d(qd)`` per joint, (N,): the margin a global certificate may use."""
+        raise NotImplementedError  # pragma: no cover
+
+    def diag_ref(self) -> np.ndarray:
+        """A typical ``m_d`` per joint, (N,), to normalize certificate margins."""
+        return self.diag_inf()
+
+    # persistence: plain numbers and arrays only
+    def to_dict(self) -> dict:
+        return {'name': self.name, 'bias_enabled': self.bias_enabled,
+                'bias': np.asarray(self.bias, float).tolist(), **self._params()}
+
+    def _params(self) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class ViscousMean(PriorMean):
+    """``m_d`` constant per joint; see the module docstring.
+
+    Without bias ``m_d`` is :func:`prior_mean_diag`; with bias, ``m_d >= 0`` and ``b`` come from
+    one bounded least-squares problem per joint.
+    """
+
+    name = 'viscous'
+
+    def __init__(self, bias: bool = False):
+        super().__init__(bias)
+        self.m_d = None
+
+    def fit(self, Qd, Tau) -> 'ViscousMean':
+        N = Qd.shape[1]
+        if not self.bias_enabled:
+            self.m_d = prior_mean_diag(Qd, Tau)
+            self.bias = np.zeros(N)
+            return self
+        coef, b = _nnls_with_bias([Qd[:, [n]] for n in range(N)], Tau)
+        self.m_d = np.array([c[0] for c in coef])
+        self.bias = b
+        return self
+
+    def diag(self, Qd):
+        return np.broadcast_to(self.m_d, Qd.shape)
+
+    def force(self, Qd):
+        return Qd * self.m_d
+
+    def diag_bounds(self, lo, hi):
+        d = np.broadcast_to(self.m_d, lo.shape)
+        return d, d
+
+    def diag_inf(self):
+        return self.m_d.copy()
+
+    def _params(self):
+        return {'m_d': self.m_d.tolist()}
+
+    @classmethod
+    def _from(cls, d):
+        m = cls(bias=d.get('bias_enabled', False))
+        m.m_d = np.asarray(d['m_d'], float)
+        return m
+
+
+def _tanh_over(v: np.ndarray, eps: np.ndarray) -> np.ndarray:
+    """``tanh(v / eps) / v``, continuous at 0 (``1 / eps``); even, decreasing in ``|v|``."""
+    a = np.abs(v)
+    small = a < 1e-6 * eps
+    with np.errstate(invalid='ignore', divide='ignore'):
+        out = np.tanh(a / eps) / np.where(small, 1.0, a)
+    return np.where(small, 1.0 / eps * np.ones_like(a), out)
+
+
+class FrictionMean(PriorMean):
+    """Coulomb + viscous (+ Stribeck) per joint; see the module docstring.
+
+    Parameters
+    ----------
+    stribeck : bool
+        Add the Stribeck term ``F_s tanh(v / eps) exp(-(v / v_s)^2)``.
+    bias : bool
+        Learn a per-joint constant bias jointly (reported apart from the damping force).
+    """
+
+    name = 'friction'
+    _EPS_GRID = (0.003, 0.01, 0.03, 0.1)      # x RMS velocity of the joint
+    _VS_GRID = (0.03, 0.1, 0.3)
+
+    def __init__(self, stribeck: bool = False, bias: bool = False):
+        super().__init__(bias)
+        self.stribeck = bool(stribeck)
+        self.coef = None          # (N, 3): F_v, F_c, F_s (F_s = 0 without Stribeck)
+        self.eps = None           # (N,) Coulomb smoothing velocity
+        self.v_s = None           # (N,) Stribeck velocity
+
+    def _basis(self, v, eps, vs):
+        cols = [v, np.tanh(v / eps)]
+        if self.stribeck:
+            cols.append(np.tanh(v / eps) * np.exp(-(v / vs) ** 2))
+        return np.stack(cols, axis=1)
+
+    def fit(self, Qd, Tau) -> 'FrictionMean':
+        n, N = Qd.shape
+        rms = np.sqrt(np.mean(Qd ** 2, axis=0)) if n else np.ones(N)
+        rms = np.where(rms > 0, rms, 1.0)
+        self.coef = np.zeros((N, 3))
+        self.eps = np.empty(N)
+        self.v_s = np.empty(N)
+        self.bias = np.zeros(N)
+        vs_grid = self._VS_GRID if self.stribeck else (1.0,)
+        for j in range(N):
+            best = None
+            for fe in self._EPS_GRID:
+                for fv in vs_grid:
+                    eps, vs = fe * rms[j], fv * rms[j]
+                    A = self._basis(Qd[:, j], eps, vs)
+                    c, b, res = _nnls_one(A, Tau[:, j], self.bias_enabled)
+                    if best is None or res < best[0] - 1e-12 * abs(best[0]):
+                        best = (res, c, b, eps, vs)
+            _, c, b, self.eps[j], self.v_s[j] = best
+            self.coef[j, :c.size] = c
+            self.bias[j] = b
+        return self
+
+    def _diag_at(self, a: np.ndarray) -> np.ndarray:
+        """``m_d`` at speeds ``a = |v|`` (..., N)."""
+        t = _tanh_over(a, self.eps)
+        out = self.coef[:, 0] + self.coef[:, 1] * t
+        if self.stribeck:
+            out = out + self.coef[:, 2] * t * np.exp(-(a / self.v_s) ** 2)
+        return out
+
+    def diag(self, Qd):
+        return self._diag_at(np.abs(Qd))
+
+    def diag_bounds(self, lo, hi):
+        amax = np.maximum(np.abs(lo), np.abs(hi))
+        amin = np.where((lo <= 0) & (hi >= 0), 0.0, np.minimum(np.abs(lo), np.abs(hi)))
+        return self._diag_at(amax), self._diag_at(amin)
+
+    def diag_inf(self):
+        return self.coef[:, 0].copy()
+
+    def diag_ref(self):
+        return self._diag_at(self.eps * 10.0)
+
+    def _params(self):
+        return {'stribeck': self.stribeck, 'coef': self.coef.tolist(), 'eps': self.eps.tolist(),
+                'v_s': self.v_s.tolist()}
+
+    @classmethod
+    def _from(cls, d):
+        m = cls(stribeck=bool(d['stribeck']), bias=d.get('bias_enabled', False))
+        m.coef = np.asarray(d['coef'], float)
+        m.eps = np.asarray(d['eps'], float)
+        m.v_s = np.asarray(d['v_s'], float)
+        return m
+
+
+class ConstantMean(PriorMean):
+    """A constant force per output: the ARD baseline's prior (the mean of the data)."""
+
+    name = 'constant'
+    has_damping = False
+
+    def __init__(self, bias: bool = False):
+        super().__init__(bias)
+        self.value = None
+
+    def fit(self, Qd, Tau) -> 'ConstantMean':
+        self.value = Tau.mean(axis=0)
+        self.bias = np.zeros(Tau.shape[1])
+        return self
+
+    def force(self, Qd):
+        return np.broadcast_to(self.value, Qd.shape)
+
+    def _params(self):
+        return {'value': self.value.tolist()}
+
+    @classmethod
+    def _from(cls, d):
+        m = cls()
+        m.value = np.asarray(d['value'], float)
+        return m
+
+
+def _nnls_one(A: np.ndarray, y: np.ndarray, bias: bool):
+    """min |A c + b - y|^2 (+ 0.01 n b^2) with c >= 0 (and b free if ``bias``).
+
+    Returns (c, b, residual^2). The weak ridge on ``b`` only matters where the data cannot tell
+    a bias from Coulomb friction (a joint that moved one way only: ``tanh(v / eps)`` is then
+    constant too); there it keeps ``b`` small instead of trading a large bias against a large
+    Coulomb force."""
+    k = A.shape[1]
+    n = A.shape[0]
+    if n == 0:
+        return np.zeros(k), 0.0, 0.0
+    yy = y
+    if bias:
+        A = np.column_stack([A, np.ones(n)])
+        ridge = np.zeros((1, k + 1))
+        ridge[0, k] = 0.1 * np.sqrt(n)
+        A = np.vstack([A, ridge])
+        yy = np.r_[y, 0.0]
+    lb = np.r_[np.zeros(k), [-np.inf] if bias else []]
+    r = lsq_linear(A, yy, bounds=(lb, np.full(lb.size, np.inf)), method='bvls')
+    c = np.maximum(r.x[:k], 0.0)
+    b = float(r.x[k]) if bias else 0.0
+    res = float(np.sum((A[:n, :k] @ c + b - y) ** 2))
+    return c, b, res
+
+
+def _nnls_with_bias(bases, Tau):
+    coef, bias = [], np.zeros(Tau.shape[1])
+    for j, A in enumerate(bases):
+        c, b, _ = _nnls_one(A, Tau[:, j], True)
+        coef.append(c)
+        bias[j] = b
+    return coef, bias
+
+
+_BY_NAME = {'viscous': ViscousMean, 'friction': FrictionMean, 'constant': ConstantMean}
+
+
+def make_mean(prior: str, kind: str, bias: bool = False) -> PriorMean:
+    """The prior mean for a model kind: 'ard' always gets :class:`ConstantMean`.
+
+    prior : 'viscous' | 'friction' | 'friction+stribeck'
+    """
+    if kind == 'ard':
+        return ConstantMean()
+    if prior == 'viscous':
+        return ViscousMean(bias=bias)
+    if prior in ('friction', 'friction+stribeck'):
+        return FrictionMean(stribeck=prior.endswith('stribeck'), bias=bias)
+    raise ValueError(f"prior must be one of {', '.join(PRIORS)}, got {prior!r}")
+
+
+def mean_from_dict(d: dict, N: Optional[int] = None) -> PriorMean:
+    """Inverse of ``PriorMean.to_dict``; ValueError for anything malformed."""
+    try:
+        cls = _BY_NAME[d['name']]
+        m = cls._from(d)
+        m.bias = np.asarray(d.get('bias', []), float)
+        if N is not None and m.bias.size != N:
+            raise ValueError(f'bias has {m.bias.size} entries, expected {N}')
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f'malformed prior mean record ({type(exc).__name__}: {exc})') from None
+    for k, v in m.to_dict().items():
+        if isinstance(v, list) and not np.all(np.isfinite(np.asarray(v, float))):
+            raise ValueError(f'prior mean field {k!r} is not finite')
+    return m

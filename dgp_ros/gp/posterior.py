@@ -1,0 +1,408 @@
+"""The exact GP posterior of a D-GP: hyper-parameters, data, Cholesky factors and weights.
+
+Units: public arguments are model units (``Qd`` (k, N) velocities, ``Tau`` (k, N) forces). Inside,
+inputs are standardized ``x = qd / s_x`` and outputs ``y = (tau - m_tau(qd) - b) / s_y``, with
+``s_x`` the RMS velocity and ``s_y`` the RMS of the residual after the prior mean; so rad vs m/s
+or 1e5 N scales do not matter.
+
+Structure (DESIGN "Method"): output ``m`` is an independent GP with the kernel
+``k^(m)(x, x') = sum_{e in row m} phi_e(x) phi_e(x') k_e(x, x')`` (``kernels.Structure``). The
+stacked ``nN x nN`` system is block diagonal, so fitting is ``N`` independent ``n x n`` Cholesky
+factorizations and prediction ``N`` independent triangular solves.
+
+The posterior splits into the prior and the GP *correction*:
+``tau_hat(q) = m_tau(q) + w(q) C(q) q`` and ``D_hat(q) = diag(m_d(q)) + w(q) C(q)``, where the
+correction weight ``w`` belongs to the passivity policy (1 when nothing is enforced).
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from scipy.linalg import LinAlgError, cholesky
+from scipy.linalg.blas import dsymv
+
+from ._chol import WindowCholesky, cholesky_in_place
+from .kernels import Structure, lower_se_sum, se_ard
+from .means import PriorMean
+from .verify import CorrectionTerms
+
+__all__ = ['Hyper', 'Posterior', 'chol_jitter']
+
+_JITTER_STEPS = (0.0, 1e-10, 1e-8, 1e-6, 1e-4)   # relative to mean(diag K); bounded escalation
+_LOG2PI = math.log(2.0 * math.pi)
+# element kernels are kept while an output is factorized up to this n, so that the RKHS norms of
+# the certificate cost one matrix-vector product each instead of a rebuild
+_KEEP_PARTS = 2000
+
+
+@dataclass
+class Hyper:
+    """Kernel hyper-parameters and standardization (standardized units, natural logs).
+
+    log_sf2 : (E,) signal variances per element (``-inf`` = element switched off)
+    log_ls : (E, N) lengthscales per element
+    log_sn2 : (N,) noise variance per output
+    sx, sy : (N,) input and output scales (model units)
+    """
+
+    log_sf2: np.ndarray
+    log_ls: np.ndarray
+    log_sn2: np.ndarray
+    sx: np.ndarray
+    sy: np.ndarray
+
+    FIELDS = ('log_sf2', 'log_ls', 'log_sn2', 'sx', 'sy')
+
+    def copy(self) -> 'Hyper':
+        return Hyper(*(np.array(getattr(self, k), dtype=float) for k in self.FIELDS))
+
+    def to_dict(self) -> dict:
+        return {k: np.asarray(getattr(self, k), float).tolist() for k in self.FIELDS}
+
+    @classmethod
+    def from_dict(cls, d: dict, structure: Optional[Structure] = None) -> 'Hyper':
+        """Validated: finite where it must be, positive scales, exp() without overflow, and
+        shapes that match ``structure`` when given. Raises ValueError naming the field."""
+        missing = [k for k in cls.FIELDS if k not in d]
+        if missing:
+            raise ValueError(f'hyperparams is missing {missing}')
+        try:
+            hp = {k: np.array(d[k], dtype=float) for k in cls.FIELDS}
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f'hyperparams: non-numeric values ({exc})') from None
+        for k, v in hp.items():
+            bad = np.isnan(v) | (v == np.inf) | ((v == -np.inf) & (k != 'log_sf2'))
+            if np.any(bad):
+                raise ValueError(f'hyperparams[{k!r}] has non-finite values')
+        for k in ('sx', 'sy'):
+            if np.any(hp[k] <= 0):
+                raise ValueError(f'hyperparams[{k!r}] must be positive scales, got {hp[k]}')
+        for k, lim in (('log_ls', 300.0), ('log_sf2', 300.0), ('log_sn2', 300.0)):
+            v = hp[k][np.isfinite(hp[k])]
+            if np.any(np.abs(v) > lim):
+                raise ValueError(f'hyperparams[{k!r}] out of range (|value| > {lim:g}): '
+                                 f'exp() would overflow or underflow')
+        if structure is not None:
+            N, E = structure.N, structure.E
+            want = {'log_sf2': (E,), 'log_ls': (E, N), 'log_sn2': (N,), 'sx': (N,), 'sy': (N,)}
+            for k, shape in want.items():
+                if hp[k].shape != shape:
+                    raise ValueError(f'hyperparams[{k!r}] has shape {hp[k].shape}, the '
+                                     f'{structure.kind} model with N = {N} needs {shape}')
+        return cls(**hp)
+
+
+def chol_jitter(K: np.ndarray):
+    """Lower Cholesky factor with bounded jitter escalation. Returns (L, jitter_added)."""
+    base = float(np.mean(np.diag(K))) or 1.0
+    for rel in _JITTER_STEPS:
+        j = rel * base
+        try:
+            L = cholesky(K + j * np.eye(K.shape[0]) if j else K, lower=True, check_finite=False)
+            return L, j
+        except LinAlgError:
+            continue
+    raise LinAlgError(f'kernel matrix not positive definite even with jitter '
+                      f'{_JITTER_STEPS[-1]:g} x mean diagonal')
+
+
+class Posterior:
+    """Exact posterior of one D-GP (see the module docstring).
+
+    Parameters
+    ----------
+    structure : kernels.Structure
+    hyper : Hyper
+    mean : means.PriorMean (fitted)
+    Qd, Tau : (n, N) arrays, model units
+    window : int or None
+        ``update`` keeps at most this many samples (drops the oldest).
+    keep_rkhs : bool
+        Compute the RKHS norms of the correction during the factorization (the certificates
+        need them; otherwise ``rkhs_sq`` rebuilds the kernels when first asked).
+
+    Attributes
+    ----------
+    X : (n, N) standardized inputs;  R : (n, N) standardized residuals after the prior
+    alpha : (n, N) weights ``(K^(m) + s_eps^2 I)^-1 R[:, m]``;  jitter : (N,) added jitter
+    delta : (n, N) or None, a change of the weights made by a passivity repair (``repair``);
+    weights : ``alpha + delta``, the weights of the posterior mean (the variance is unchanged)
+    """
+
+    def __init__(self, structure: Structure, hyper: Hyper, mean: PriorMean, Qd: np.ndarray,
+                 Tau: np.ndarray, window: Optional[int] = None, keep_rkhs: bool = True):
+        self.keep_rkhs = keep_rkhs
+        self.structure = structure
+        self.hyper = hyper
+        self.mean = mean
+        self.window = window
+        self.X = Qd / hyper.sx
+        self.R = (Tau - mean(Qd)) / hyper.sy
+        self._factorize()
+
+    # ------------------------------------------------------------------ construction
+    @property
+    def N(self) -> int:
+        return self.structure.N
+
+    @property
+    def n(self) -> int:
+        return self.X.shape[0]
+
+    def _limit(self) -> Optional[int]:
+        return None if self.window is None else self.window + 1
+
+    def _factorize(self) -> None:
+        """Per output: the kernel's lower triangle built in place in a factor buffer, Cholesky in
+        place (LAPACK, no copy; bounded jitter escalation as ``chol_jitter``), adopted by a
+        ``WindowCholesky``. The element kernels are kept while their output is factorized when
+        the RKHS norms are wanted (``keep_rkhs``), so that each costs one matrix-vector
+        product instead of a rebuild."""
+        s, hp, X = self.structure, self.hyper, self.X
+        n = X.shape[0]
+        self.factors = []
+        self.alpha = np.zeros((n, s.N))
+        self.jitter = np.zeros(s.N)
+        keep = self.keep_rkhs and n <= _KEEP_PARTS
+        rkhs_sq = np.zeros(s.E)
+        ls = np.exp(hp.log_ls)
+        sf2 = np.exp(hp.log_sf2)
+        for m in range(s.N):
+            rows = s.rows[m]
+            args = ([ls[e] for e in rows], [sf2[e] for e in rows],
+                    [s.features(X, e) for e in rows])
+            sn2 = math.exp(hp.log_sn2[m])
+            A = WindowCholesky.workspace(n, self._limit())
+            parts = [np.empty((n, n), order='F') for _ in rows] if keep else None
+            lower_se_sum(X, *args, A, noise=sn2, parts=parts)
+            d = A[np.arange(n), np.arange(n)]
+            base = float(d.mean()) or 1.0
+            if not (math.isfinite(base) and np.all(np.isfinite(d))):
+                raise ValueError(f'kernel matrix of output {m} is not finite: hyper-parameters '
+                                 f'or inputs out of range')
+            for rel in _JITTER_STEPS:
+                j = rel * base
+                if j:                                  # dpotrf overwrote the triangle: rebuild
+                    lower_se_sum(X, *args, A, noise=sn2 + j)
+                if cholesky_in_place(A, n) == 0:
+                    break
+            else:
+                raise LinAlgError(f'kernel matrix not positive definite even with jitter '
+                                  f'{_JITTER_STEPS[-1]:g} x mean diagonal')
+            wc = WindowCholesky.adopt(A, self.R[:, m], n=n, limit=self._limit())
+            if not np.all(np.isfinite(wc.diag())):
+                raise ValueError(f'kernel matrix of output {m} is not finite: hyper-parameters '
+                                 f'or inputs out of range')
+            self.factors.append(wc)
+            self.jitter[m] = j
+            self.alpha[:, m] = wc.alpha()
+            for k, e in enumerate(rows if keep else ()):
+                if sf2[e] > 0:
+                    a = self.alpha[:, m]
+                    rkhs_sq[e] = float(a @ dsymv(1.0, parts[k], a, lower=1))
+            del parts
+        self.delta = None
+        self.weights = self.alpha
+        self._rkhs = (self.weights, rkhs_sq) if keep else None
+
+    def set_delta(self, delta: Optional[np.ndarray]) -> None:
+        """Set the repair's change of the weights, (n, N) or None."""
+        self.delta = None if delta is None or not np.any(delta) else np.array(delta, float)
+        self.weights = self.alpha if self.delta is None else self.alpha + self.delta
+
+    @classmethod
+    def restore(cls, structure, hyper, mean, X, R, alpha, jitter, factors, z, window,
+                delta=None):
+        """Rebuild from saved arrays (``persistence``): no refactorization, bit-identical."""
+        self = cls.__new__(cls)
+        self.structure, self.hyper, self.mean, self.window = structure, hyper, mean, window
+        self.keep_rkhs = True
+        self.X, self.R, self.alpha, self.jitter = X, R, alpha, jitter
+        self.factors = [WindowCholesky(factors[m], R[:, m], limit=self._limit(), z=z[m])
+                        for m in range(structure.N)]
+        self.set_delta(delta)
+        self._rkhs = None
+        return self
+
+    def with_kernel(self, hyper: Hyper) -> 'Posterior':
+        """The same data under other kernel hyper-parameters (same ``sx``, ``sy``): refactorized.
+        """
+        if not (np.array_equal(hyper.sx, self.hyper.sx) and np.array_equal(hyper.sy, self.hyper.sy)):
+            raise ValueError('with_kernel keeps the standardization: sx and sy must not change')
+        p = copy.copy(self)
+        p.hyper = hyper
+        p._factorize()
+        return p
+
+    def copy(self) -> 'Posterior':
+        """An independent copy (the refit worker updates copies off the message path)."""
+        return copy.deepcopy(self)
+
+    # ------------------------------------------------------------------ data access
+    @property
+    def Qd(self) -> np.ndarray:
+        """Training velocities, model units (n, N)."""
+        return self.X * self.hyper.sx
+
+    @property
+    def Tau(self) -> np.ndarray:
+        """Training forces, model units (n, N) (prior and bias added back)."""
+        Q = self.Qd
+        return self.R * self.hyper.sy + self.mean(Q)
+
+    def log_marginal_likelihood(self) -> float:
+        """Sum over outputs of the log marginal likelihood of the (standardized) residuals."""
+        n = self.n
+        tot = 0.0
+        for m in range(self.N):
+            tot += (-0.5 * self.R[:, m] @ self.alpha[:, m]
+                    - np.log(self.factors[m].diag()).sum() - 0.5 * n * _LOG2PI)
+        return float(tot)
+
+    def rkhs_sq(self) -> np.ndarray:
+        """Per element ``|C_e|_H^2 = a^T K_e a`` (``a = x_n * alpha_m``, K_e with sf2), (E,):
+        kept from the factorization, else rebuilt (one n x n kernel per element)."""
+        c = self._rkhs
+        if c is not None and c[0] is self.weights:
+            return c[1]
+        s, hp = self.structure, self.hyper
+        q = np.zeros(s.E)
+        for m in range(s.N):
+            for e, k in s.output_kernels(m, self.X, self.X, hp.log_ls, hp.log_sf2):
+                q[e] = float(self.weights[:, m] @ (k @ self.weights[:, m]))
+        self._rkhs = (self.weights, q)
+        return q
+
+    # ------------------------------------------------------------------ update
+    def update(self, Qd: np.ndarray, Tau: np.ndarray) -> None:
+        """Append samples (k, N) in place: O(n^2) per sample and output; beyond ``window`` the
+        oldest sample is dropped by a rank-one update of each factor."""
+        s, hp = self.structure, self.hyper
+        sn2 = np.exp(hp.log_sn2)
+        ls, sf2 = np.exp(hp.log_ls), np.exp(hp.log_sf2)
+        R_new = (Tau - self.mean(Qd)) / hp.sy
+        for q, r in zip(Qd, R_new):
+            x = (q / hp.sx)[None, :]
+            # every element's kernel column in one pass (exact differences; one new sample)
+            Kel = se_ard(x, self.X, ls, sf2) if s.E > 1 else None
+            for m in range(s.N):
+                c = s.output_kernel(m, x, self.X, hp.log_ls, hp.log_sf2, Kel)[0]
+                floor = sn2[m] + self.jitter[m]
+                self.factors[m].append(c, s.output_kdiag(m, x, hp.log_sf2)[0] + floor, floor,
+                                       r[m])
+            self.X = np.vstack([self.X, x])
+            self.R = np.vstack([self.R, r[None, :]])
+            if self.delta is not None:
+                self.delta = np.vstack([self.delta, np.zeros((1, s.N))])
+            if self.window is not None and self.X.shape[0] > self.window:
+                for f in self.factors:
+                    f.drop_first()
+                self.X = self.X[1:]
+                self.R = self.R[1:]
+                if self.delta is not None:
+                    self.delta = self.delta[1:]
+        self.alpha = np.column_stack([f.alpha() for f in self.factors])
+        self.set_delta(self.delta)
+
+    # ------------------------------------------------------------------ prediction
+    def element_kernels(self, Q: np.ndarray) -> Optional[np.ndarray]:
+        """All raw element kernels against the training set in one pass for a few queries
+        (E, k, n), or None for batches (which build them per output)."""
+        X = Q / self.hyper.sx
+        E = self.structure.E
+        if E < 2 or X.shape[0] > 16 or X.shape[0] * self.n * E > 2_000_000:
+            return None
+        return se_ard(X, self.X, np.exp(self.hyper.log_ls), np.exp(self.hyper.log_sf2))
+
+    def predict(self, Q: np.ndarray, weight: Optional[np.ndarray] = None,
+                return_var: bool = False, Kel=None):
+        """Damping force ``m_tau(q) + w(q) * correction`` (k, N) and its posterior variance.
+
+        weight : (k,) correction weight ``w`` (None = 1). Kel : from ``element_kernels``.
+        The variance is that of the GP (noise-free), in force units squared.
+        """
+        s, hp = self.structure, self.hyper
+        X = Q / hp.sx
+        corr = np.zeros_like(X)
+        var = np.zeros_like(X) if return_var else None
+        for m in range(s.N):
+            Ks = s.output_kernel(m, X, self.X, hp.log_ls, hp.log_sf2, Kel)
+            corr[:, m] = Ks @ self.weights[:, m]
+            if return_var:
+                v = self.factors[m].solve(Ks.T)
+                var[:, m] = np.maximum(s.output_kdiag(m, X, hp.log_sf2)
+                                       - np.einsum('ij,ij->j', v, v), 0.0)
+        if weight is not None:
+            corr *= weight[:, None]
+        tau = self.mean.force(Q) + corr * hp.sy
+        if return_var:
+            var = var * hp.sy ** 2
+        return tau, var
+
+    def damping(self, Q: np.ndarray, weight: Optional[np.ndarray] = None, Kel=None) -> np.ndarray:
+        """Damping matrix ``diag(m_d(q)) + w(q) C(q)`` (k, N, N), model units, with
+        ``predict(q) = D(q) q``. Not defined for the ARD baseline."""
+        s, hp = self.structure, self.hyper
+        X = Q / hp.sx
+        k = X.shape[0]
+        D = np.zeros((k, s.N, s.N))
+        idx = np.arange(s.N)
+        D[:, idx, idx] = self.mean.diag(Q)
+        ls = np.exp(hp.log_ls)
+        for e, (m, n) in enumerate(s.elems):
+            sf2 = math.exp(hp.log_sf2[e])
+            if sf2 == 0.0:
+                continue
+            ke = se_ard(X, self.X, ls[e], sf2) if Kel is None else Kel[e]
+            c = (ke @ (self.X[:, n] * self.weights[:, m])) * (hp.sy[m] / hp.sx[n])
+            D[:, m, n] += c if weight is None else weight * c
+        return D
+
+    # ------------------------------------------------------------------ certificates
+    def correction_terms(self, scale: float) -> CorrectionTerms:
+        """The correction in the form ``verify.verify_box`` proves (scaled by ``scale``)."""
+        s, hp = self.structure, self.hyper
+        coef = np.stack([self.X[:, n] * self.weights[:, m] * scale for m, n in s.elems])
+        sf2 = np.exp(hp.log_sf2)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            rk = np.where(sf2 > 0, np.sqrt(np.maximum(self.rkhs_sq(), 0.0) / sf2), 0.0)
+        return CorrectionTerms(self.X, list(s.elems), sf2, np.exp(hp.log_ls), coef, self.mean,
+                               hp.sx, hp.sy,
+                               lambda Q: self.damping(Q, np.full(Q.shape[0], scale)),
+                               rkhs=abs(scale) * rk)
+
+    def l1_bound(self, rkhs: bool = True) -> np.ndarray:
+        """A-posteriori bound ``B_mn >= sup_q |C_mn(q)|`` (N, N), model units.
+
+        Per element the smaller of the L1 bound ``sf2 * sum_i |x_{n,i} alpha_{m,i}|`` and the
+        RKHS bound ``|g|_H sqrt(sf2)`` (reproducing property and Cauchy-Schwarz); both hold for
+        every q. ``rkhs=False``: the O(n) L1 form only (the per-update check)."""
+        s, hp = self.structure, self.hyper
+        B = np.zeros((s.N, s.N))
+        rk = self.rkhs_sq() if rkhs else None
+        for e, (m, n) in enumerate(s.elems):
+            sf2 = math.exp(hp.log_sf2[e])
+            if sf2 == 0.0:
+                continue
+            a = self.X[:, n] * self.weights[:, m]
+            b = sf2 * np.abs(a).sum()
+            if rkhs:
+                b = min(b, math.sqrt(max(float(rk[e]), 0.0) * sf2))
+            B[m, n] = b * hp.sy[m] / hp.sx[n]
+        return B
+
+    def paper_bound(self) -> np.ndarray:
+        """Theorem 1 bound with the sf^2 kernel bound, (N, N) model units:
+        ``sf2_mn * sqrt(n) |x|_inf |dy_m| / s_eps^2``."""
+        s, hp = self.structure, self.hyper
+        xinf = float(np.abs(self.X).max())
+        B = np.zeros((s.N, s.N))
+        for e, (m, nn) in enumerate(s.elems):
+            c = (math.sqrt(self.n) * xinf * np.linalg.norm(self.R[:, m])
+                 / math.exp(hp.log_sn2[m]))
+            B[m, nn] = math.exp(hp.log_sf2[e]) * c * hp.sy[m] / hp.sx[nn]
+        return B

@@ -1,0 +1,112 @@
+"""Local passivity repair of a D-GP posterior: the smallest change of its weights that makes the
+dissipated power non-negative at given velocities (cutting planes for the certified policy).
+
+The posterior mean is linear in its weights ``w = alpha + delta``: at a velocity ``z``,
+
+    P(z) = z^T D(z) z = z^T M(z) z + sum_m G_m(z) . w_m,
+    G_m(z)_i = s(z) sum_{n : (m, n) elements} z_m z_n k_mn(z, x_i) x_{n,i} s_y,m / s_x,n,
+
+with ``s(z)`` the correction weight of the policy (scale and blend). Requiring ``P(z_j) >= eps_j``
+at the counterexamples ``z_j`` is a set of linear inequalities in ``delta``. The change with the
+least norm ``sum_m delta_m^T (K_m + s_eps,m^2 I) delta_m`` (the RKHS norm of the change of the
+mean, regularized by the noise) follows from the dual, a small QP over one multiplier per
+counterexample: ``delta_m = (K_m + s_eps^2 I)^-1 G_m^T lambda``, ``lambda >= 0`` minimizing
+``0.5 lambda^T H lambda - b^T lambda`` with ``H = sum_m G_m (K_m + s_eps^2 I)^-1 G_m^T``. So the
+mean changes only near the counterexamples, by kernel bumps centred on the training points.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Callable, Tuple
+
+import numpy as np
+from scipy.optimize import minimize
+
+from .kernels import se_ard
+
+__all__ = ['power_rows', 'diagonal_rows', 'repair', 'find_violations']
+
+
+def power_rows(post, Z: np.ndarray, weight: np.ndarray) -> Tuple[np.ndarray, list]:
+    """(prior power (J,), [G_m (J, n) for each output]) of the velocities Z (J, N), model units;
+    ``weight`` (J,) is the correction weight ``s(z)``."""
+    s, hp = post.structure, post.hyper
+    X = Z / hp.sx
+    p0 = np.einsum('jn,jn->j', Z * post.mean.diag(Z), Z)
+    G = [np.zeros((Z.shape[0], post.n)) for _ in range(s.N)]
+    ls = np.exp(hp.log_ls)
+    for e, (m, n) in enumerate(s.elems):
+        sf2 = math.exp(hp.log_sf2[e])
+        if sf2 == 0.0:
+            continue
+        k = se_ard(X, post.X, ls[e], sf2)                       # (J, n)
+        f = (weight * Z[:, m] * Z[:, n]) * (hp.sy[m] / hp.sx[n])
+        G[m] += (k * post.X[:, n][None, :]) * f[:, None]
+    return p0, G
+
+
+def diagonal_rows(post, Z: np.ndarray, weight: np.ndarray, n: int) -> Tuple[np.ndarray, list]:
+    """As ``power_rows`` for ``D_nn(z)`` instead of the power: (prior m_n(z) (J,), G list with
+    only output n's row block non-zero)."""
+    s, hp = post.structure, post.hyper
+    X = Z / hp.sx
+    p0 = post.mean.diag(Z)[:, n].copy()
+    G = [np.zeros((Z.shape[0], post.n)) for _ in range(s.N)]
+    ls = np.exp(hp.log_ls)
+    for e, (m, k) in enumerate(s.elems):
+        sf2 = math.exp(hp.log_sf2[e])
+        if m != n or k != n or sf2 == 0.0:
+            continue
+        G[n] += (se_ard(X, post.X, ls[e], sf2) * post.X[:, n][None, :]) * \
+            (weight * hp.sy[n] / hp.sx[n])[:, None]
+    return p0, G
+
+
+def repair(post, rows: Tuple[np.ndarray, list], margin: np.ndarray) -> Tuple[np.ndarray, dict]:
+    """The least change of the weights (n, N) with ``p0_j + sum_m G_m[j] . w_m >= margin_j``.
+
+    ``rows``: (p0 (J,), [G_m (J, n)]) from ``power_rows`` (the dissipated power at the
+    counterexamples) or ``diagonal_rows``. Returns ``(delta_change, info)``; info: constraints,
+    active constraints, dual iterations, whether every constraint holds afterwards.
+    """
+    p0, G = rows
+    P = p0 + sum(G[m] @ post.weights[:, m] for m in range(post.N))
+    b = margin - P
+    # metric (K_m + s^2 I)^2: the change of the mean at the training velocities, in least
+    # squares (an RKHS-norm metric let a smooth output absorb the fix far from the violations)
+    U = [f.solve(f.solve(G[m].T), trans=True) for m, f in enumerate(post.factors)]
+    H = sum(u.T @ u for u in U)
+    J = p0.shape[0]
+    scale = float(np.max(np.abs(np.diag(H)))) or 1.0
+
+    def dual(lam):
+        g = H @ lam
+        return float(0.5 * lam @ g - b @ lam) / scale, (g - b) / scale
+
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        res = minimize(dual, np.zeros(J), jac=True, method='L-BFGS-B',
+                       bounds=[(0.0, None)] * J, options=dict(maxiter=2000, ftol=1e-15,
+                                                              gtol=1e-12))
+    lam = np.maximum(res.x, 0.0)
+    delta = np.column_stack([f.solve(f.solve(U[m] @ lam), trans=True)
+                             for m, f in enumerate(post.factors)])
+    after = P + sum(G[m] @ delta[:, m] for m in range(post.N))
+    tol = 1e-9 * (np.abs(p0) + np.abs(P) + 1e-300)
+    return delta, dict(constraints=J, active=int(np.sum(lam > 0)), iterations=int(res.nit),
+                       holds=bool(np.all(after >= margin - tol)))
+
+
+def find_violations(power: Callable[[np.ndarray], np.ndarray], post, lo: np.ndarray,
+                    hi: np.ndarray, rng, k: int = 20000, keep: int = 200) -> np.ndarray:
+    """Velocities in the box ``[lo, hi]`` where ``power(Z)`` (the published model's dissipated
+    power) is negative: searched uniformly and near the training velocities (violations sit
+    where non-passive samples pulled the posterior). The most negative ``keep``, (J, N)."""
+    Qd = post.Qd
+    ls = np.exp(post.hyper.log_ls).min(axis=0) * post.hyper.sx     # shortest lengthscales
+    near = Qd[rng.integers(0, len(Qd), k)] + rng.normal(size=(k, Qd.shape[1])) * ls / 3.0
+    Z = np.vstack([rng.uniform(lo, hi, (k, lo.size)), np.clip(near, lo, hi), Qd])
+    P = power(Z)
+    bad = np.flatnonzero(P < 0)
+    return Z[bad[np.argsort(P[bad])[:keep]]]
