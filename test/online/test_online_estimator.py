@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from dgp_ros.gp import prior_mean_diag
+from dgp_ros.gp import Certificate, FullDGP, prior_mean_diag
 from dgp_ros.online import ERROR, OK, WARN, EstimatorConfig, OnlineEstimator
 
 NAMES = ['a', 'b', 'c']
@@ -47,7 +47,9 @@ def cfg(**kw):
     ('min_samples', 0, 'min_samples'), ('min_samples', 500, 'buffer_size'),
     ('refit_period_s', -1.0, 'refit_period_s'), ('refit_period_s', float('nan'), 'finite'),
     ('optimize_every_n_refits', -2, 'optimize_every_n_refits'),
-    ('selection', 'random', 'selection'), ('selection_min_distance', -0.1, '>= 0'),
+    ('selection', 'random', 'selection'), ('selection_min_distance', -0.1, '[0, 100]'),
+    ('selection_min_distance', 1e200, '[0, 100]'), ('max_abs_velocity', float('inf'), 'finite'),
+    ('buffer_size', 10 ** 9, '[2, 5000]'), ('model_path', '/tmp/model.txt', '.npz'),
     ('joints', ['a', 'a'], 'unique'), ('joints', ['a', ''], 'joints'),
     ('refit_mode', 'thread', 'refit_mode'), ('model_path', '/nonexistent/dir/m.npz', 'directory'),
     ('selection_scale', [1.0, -1.0], 'selection_scale'), ('max_abs_effort', 0.0, 'max_abs_effort'),
@@ -63,7 +65,7 @@ def test_config_validate_rejects_with_reason(field, value, words):
 
 
 def test_config_ard_cannot_be_certified():
-    with pytest.raises(ValueError, match='ARD'):
+    with pytest.raises(ValueError, match="does not apply to model 'ard'"):
         EstimatorConfig(model='ard', passivity='certified').validate()
     EstimatorConfig(model='ard', passivity='projected').validate()
 
@@ -93,9 +95,9 @@ def test_bad_messages_rejected_and_counted_never_raise():
         ((0.1, NAMES, None, [1, 1, 1]), 'empty'),
     ]
     for args, reason in bad:
-        before = est.rejected[reason]
+        before = est.health.rejected[reason]
         assert est.process(*args) is None, reason
-        assert est.rejected[reason] == before + 1, reason
+        assert est.health.rejected[reason] == before + 1, reason
     d = est.diagnostics()
     assert d['rejected_total'] == len(bad)
     assert d['messages_accepted'] == 1 and d['buffer_fill'] == 1
@@ -106,7 +108,7 @@ def test_dimension_mismatch_without_joint_names():
     est = OnlineEstimator(cfg())
     assert est.process(0.0, [], [0.1, 0.2, 0.3], [1, 1, 1]) is not None
     assert est.process(0.1, [], [0.1, 0.2], [1, 1]) is None
-    assert est.rejected['dimension_mismatch'] == 1
+    assert est.health.rejected['dimension_mismatch'] == 1
 
 
 def test_joints_select_and_order_by_name():
@@ -206,15 +208,23 @@ def test_async_refit_replays_samples_and_swaps():
     assert d['trained'] and d['refits_ok'] == 1
     # every buffered sample is in the swapped-in model (replayed with update)
     assert est.model.n_samples_ == d['buffer_fill'] == 40
-    X, _ = est._buf.arrays()
+    X, _ = est.samples()
     np.testing.assert_allclose(est.model.X_train_, X, rtol=1e-12, atol=1e-12)
     est.close()
 
 
-def test_uncertified_refit_is_not_swapped(monkeypatch):
-    est = OnlineEstimator(cfg(min_samples=10, passivity='certified'))
-    monkeypatch.setattr(OnlineEstimator, '_certified',
-                        staticmethod(lambda model, c: (False, 'test: certificate fails')))
+class _Unprovable(FullDGP):
+    """A model whose certificate never holds."""
+
+    def certificate(self):
+        return Certificate(False, -1.0, 'test: certificate fails')
+
+    recertify = certificate
+
+
+def test_uncertified_refit_is_not_swapped():
+    est = OnlineEstimator(cfg(min_samples=10, passivity='certified'),
+                          model_factory=lambda kind, **kw: _Unprovable(**kw))
     out = feed(est, 12)
     assert out[-1].source == 'prior'
     for _ in range(3):
@@ -246,26 +256,32 @@ def test_never_non_passive(passivity):
     assert power.min() >= 0.0
 
 
-def test_guard_falls_back_to_prior_when_model_is_not_passive():
-    est = OnlineEstimator(cfg(passivity='paper'))
+class _Evil(FullDGP):
+    """A broken model: anti-damping answers, or non-finite ones."""
+
+    answer = -1.0
+
+    def predict_with_damping(self, Q):
+        tau = self.answer * np.atleast_2d(Q)
+        return tau, np.ones_like(tau), self.answer * np.eye(Q.shape[1])[None]
+
+
+def test_output_gate_falls_back_to_prior_when_model_is_not_passive_or_not_finite():
+    est = OnlineEstimator(cfg(passivity='projected'),
+                          model_factory=lambda kind, **kw: _Evil(**kw))
     feed(est, 12)
     assert est.trained
-
-    class Evil:                                    # a broken model: anti-damping
-        def predict(self, Q, return_var=False):
-            tau = -np.atleast_2d(Q)
-            return (tau, np.ones_like(tau)) if return_var else tau
-
-        def damping_matrix(self, Q):
-            return -np.eye(3)[None]
-
-        def update(self, q, t):
-            pass
-
-    est._model = Evil()
+    n = est.diagnostics()['passivity_fallbacks']
     e = est.process(5.0, NAMES, [0.5, 0.5, 2.0], [1.0, 0.5, 1.0])
     assert e.source == 'fallback' and e.power >= 0
-    assert est.diagnostics()['passivity_fallbacks'] == 1
+    assert est.diagnostics()['passivity_fallbacks'] == n + 1
+    _Evil.answer = float('nan')
+    try:
+        e = est.process(5.1, NAMES, [0.5, 0.5, 2.0], [1.0, 0.5, 1.0])
+    finally:
+        _Evil.answer = -1.0
+    assert e.source == 'fallback' and np.all(np.isfinite(e.tau_hat)) and e.power >= 0
+    assert est.diagnostics()['nonfinite_outputs'] == 1
 
 
 # ----------------------------------------------------------------------------- persistence
@@ -291,10 +307,21 @@ def test_save_and_restore_give_identical_estimates(tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name != 'model.npz']   # no temp leftovers
 
 
-def test_unusable_model_file_is_reported(tmp_path):
+def test_model_path_that_is_not_a_model_is_refused_and_a_damaged_model_is_reported(tmp_path):
     path = tmp_path / 'm.npz'
     path.write_bytes(b'not a model')
-    est = OnlineEstimator(cfg(model_path=str(path)))
+    with pytest.raises(ValueError, match='not a dgp_ros model file'):
+        OnlineEstimator(cfg(model_path=str(path)))
+    assert path.read_bytes() == b'not a model'
+    # a model file damaged after writing: the estimator starts without it and says why
+    good = str(tmp_path / 'good.npz')
+    est = OnlineEstimator(cfg(model_path=good))
+    feed(est, 30)
+    est.save()
+    raw = bytearray(open(good, 'rb').read())
+    raw[len(raw) // 2] ^= 0xFF
+    open(good, 'wb').write(bytes(raw))
+    est = OnlineEstimator(cfg(model_path=good))
     assert not est.trained and 'could not use' in est.load_error
     assert 'model file not used' in est.diagnostics()['message']
 
@@ -385,8 +412,37 @@ def test_hyper_parameters_relearned_each_time_the_buffer_doubles():
     seen = []
     for i in range(120):
         feed(est, 1, t0=0.05 * i, seed=i)
-        seen.append((est.refits_ok, est._opt_n))
+        d = est.diagnostics()
+        seen.append((d['refits_ok'], d['hyper_samples']))
     d = est.diagnostics()
-    assert d['refits_ok'] == 4 and est._opt_n == 80, (d['refits_ok'], est._opt_n)
+    assert d['refits_ok'] == 4 and d['hyper_samples'] == 80, d
     assert sorted({n for _, n in seen}) == [0, 10, 20, 40, 80]      # 0: before the first fit
     assert d['last_refit_optimized']
+
+
+class _Wild(FullDGP):
+    """A candidate that extrapolates wildly beyond its data (a fit on a short stretch can)."""
+
+    wild = False
+
+    def predict(self, Qs, return_var=False):
+        out = super().predict(Qs, return_var)
+        if _Wild.wild:
+            tau = out[0] if return_var else out
+            tau[np.abs(np.atleast_2d(Qs)).max(axis=1) > 1.0] *= 1e4
+        return out
+
+
+def test_a_wild_candidate_is_not_swapped_in_and_the_status_says_so():
+    est = OnlineEstimator(cfg(refit_period_s=1.0), model_factory=lambda kind, **kw: _Wild(**kw))
+    feed(est, 40)
+    assert est.trained
+    good = est.model
+    _Wild.wild = True
+    try:
+        feed(est, 40, t0=2.0, seed=1)
+    finally:
+        _Wild.wild = False
+    d = est.diagnostics()
+    assert est.model is good and d['refits_rejected'] >= 1
+    assert d['level'] >= WARN and 'model rejected' in d['message'] and 'sanity check' in d['message']

@@ -12,9 +12,10 @@ import threading
 import numpy as np
 import pytest
 
+from dgp_ros.gp import DiagDGP
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def test_quick_soak_runs_and_holds_the_invariant(tmp_path):
@@ -36,24 +37,13 @@ def test_quick_soak_runs_and_holds_the_invariant(tmp_path):
     print(json.dumps({k: r[k] for k in ('backlog', 'rss', 'latency')}, indent=1))
 
 
-class _BlockingFit:
-    """dgp_ros.gp stand-in whose model.fit waits for an event (a refit that is 'slow')."""
-
-    def __init__(self, gp, event):
-        self._gp, self.event = gp, event
-
-    def __getattr__(self, name):
-        return getattr(self._gp, name)
-
-    def make_model(self, kind, **kw):
-        m = self._gp.make_model(kind, **kw)
-        fit = m.fit
-
-        def slow_fit(Q, T, optimize=True):
-            self.event.wait(30)
-            return fit(Q, T, optimize=optimize)
-        m.fit = slow_fit
-        return m
+def _slow_factory(event):
+    """A model factory whose fits wait for ``event`` (a refit that is 'slow')."""
+    class Slow(DiagDGP):
+        def fit(self, Q, T, optimize=True):
+            event.wait(30)
+            return super().fit(Q, T, optimize=optimize)
+    return lambda kind, **kw: Slow(**kw)
 
 
 def _stream(n, seed=0):
@@ -65,13 +55,12 @@ def _stream(n, seed=0):
 def test_async_refit_samples_arriving_meanwhile_are_replayed():
     """While a (slow) async refit runs, process() never blocks and every estimate stays passive;
     after it finishes the new model holds the newest buffer_size samples."""
-    import dgp_ros.gp as gp
     ev = threading.Event()
     est = OnlineEstimator(EstimatorConfig(model='diag', passivity='projected', buffer_size=50,
                                           min_samples=20, refit_period_s=0, selection='all',
                                           min_sample_interval_s=0.0,
-                                          joints=['a', 'b', 'c'], refit_mode='async'))
-    est._gp = _BlockingFit(gp, ev)
+                                          joints=['a', 'b', 'c'], refit_mode='async'),
+                          model_factory=_slow_factory(ev))
     Q, T = _stream(200)
     try:
         for k, (q, t) in enumerate(zip(Q, T)):
@@ -86,18 +75,17 @@ def test_async_refit_samples_arriving_meanwhile_are_replayed():
 
 
 def test_pending_samples_during_refit_are_bounded_by_buffer_size():
-    import dgp_ros.gp as gp
     ev = threading.Event()
     est = OnlineEstimator(EstimatorConfig(model='diag', passivity='projected', buffer_size=30,
                                           min_samples=20, refit_period_s=0, selection='all',
                                           min_sample_interval_s=0.0,
-                                          joints=['a', 'b', 'c'], refit_mode='async'))
-    est._gp = _BlockingFit(gp, ev)
+                                          joints=['a', 'b', 'c'], refit_mode='async'),
+                          model_factory=_slow_factory(ev))
     Q, T = _stream(400)
     try:
         for k, (q, t) in enumerate(zip(Q, T)):
             est.process(0.001 * (k + 1), ['a', 'b', 'c'], q, t)
-        pending = len(est._pending)
+        pending = est.diagnostics()['pending_samples']
     finally:
         ev.set()
         est.wait_for_refit(60)

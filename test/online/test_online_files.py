@@ -15,9 +15,10 @@ import numpy as np
 import pytest
 
 from dgp_ros.gp import FORMAT_VERSION, load_model, make_model
+from dgp_ros.gp.persistence import is_model_file
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
+REPO = pathlib.Path(__file__).resolve().parents[2]
 
 
 def _data(n=40, seed=0):
@@ -118,8 +119,15 @@ def test_bad_model_file_gives_clear_error(saved, tmp_path, case):
     with pytest.raises(ValueError, match=pattern) as ei:
         load_model(path)
     assert str(path) in str(ei.value)
-    # through the estimator: not used, reason reported, no exception, prior-mean estimates
-    if path.exists():
+    # through the estimator: a file that is not a model of ours is refused as model_path (a save
+    # would overwrite it); a damaged model file is not used, the reason is reported, nothing
+    # raises and the estimates are the prior's
+    cfg = EstimatorConfig(model='full', passivity='paper', model_path=str(path),
+                          refit_mode='sync')
+    if path.exists() and not is_model_file(path):
+        with pytest.raises(ValueError, match='not a dgp_ros model file|must end in .npz'):
+            cfg.validate()
+    elif path.exists():
         est = OnlineEstimator(EstimatorConfig(model='full', passivity='paper',
                                               model_path=str(path), refit_mode='sync'))
         assert not est.trained
@@ -210,3 +218,33 @@ def test_no_pickle_in_package_sources():
             if _PICKLE.search(code):
                 hits.append(f'{f.relative_to(REPO)}:{n}: {line.strip()}')
     assert not hits, '\n'.join(hits)
+
+
+def test_model_path_never_points_at_anything_but_a_model_file_of_ours(tmp_path):
+    """The hardening issue's finding 4: refused at validation, so nothing is ever overwritten."""
+    text = tmp_path / 'notes.npz'
+    text.write_text('my notes')
+    link = tmp_path / 'link.npz'
+    good = tmp_path / 'good.npz'
+    link.symlink_to(good)
+    cases = {str(text): 'not a dgp_ros model file', str(tmp_path): 'must end in .npz',
+             str(tmp_path / 'dir.npz'): 'not a regular file', '/dev/full': 'must end in .npz',
+             str(link): 'symbolic link', str(tmp_path / 'nodir' / 'm.npz'): 'does not exist',
+             str(tmp_path / 'm.txt'): 'must end in .npz'}
+    (tmp_path / 'dir.npz').mkdir()
+    for path, why in cases.items():
+        with pytest.raises(ValueError, match=why):
+            EstimatorConfig(model_path=path).validate()
+    assert text.read_text() == 'my notes'
+    # a save re-checks the path: replaced by a foreign file meanwhile, it is refused
+    est = OnlineEstimator(EstimatorConfig(model='diag', min_samples=5, refit_mode='sync',
+                                          selection='all', model_path=str(good)))
+    for k in range(10):
+        q = np.array([0.1 * k, 0.05 * k, 1.0 + 0.01 * k])
+        est.process(0.1 * k, ['a', 'b', 'c'], q, 2 * q)
+    assert est.trained and good.exists()
+    good.unlink()
+    good.write_text('replaced')
+    with pytest.raises(ValueError, match='not a dgp_ros model file'):
+        est.save()
+    assert good.read_text() == 'replaced'

@@ -377,7 +377,7 @@ def test_node_rejects_and_counts_malformed_joint_states_over_dds():
                 pub.publish(m)
             # pace: the node's subscription is best effort (depth 50); let it keep up
             t_end = time.monotonic() + 5
-            while node.estimator.messages_received < sent_good + sent_bad and \
+            while node.estimator.health.messages_received < sent_good + sent_bad and \
                     time.monotonic() < t_end:
                 executor.spin_once(timeout_sec=0.01)
         n0 = len(diags)

@@ -1,0 +1,22 @@
+"""Online D-GP estimation: the one implementation behind the ROS node, bag replay and the demo.
+
+No rclpy here (everything a node does can be done offline)::
+
+    from dgp_ros.online import EstimatorConfig, OnlineEstimator
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync'))   # same names as the node's parameters
+    e = est.process(stamp_s, names, velocity, effort)          # -> Estimate, or None if rejected
+    est.diagnostics()                                          # dict: level, message, counters
+
+Modules: ``config`` (parameters and their specs), ``estimator`` (the message path),
+``selection`` (what is learned), ``worker`` (refit jobs), ``health`` (counters and status).
+"""
+from dgp_ros.gp import KINDS as MODELS
+from dgp_ros.gp import PASSIVITY_MODES
+
+from .config import PARAMS, REFIT_MODES, SELECTION_POLICIES, EstimatorConfig, ParamSpec
+from .estimator import Estimate, OnlineEstimator
+from .health import ERROR, OK, REJECT_REASONS, WARN
+
+__all__ = ['EstimatorConfig', 'OnlineEstimator', 'Estimate', 'PARAMS', 'ParamSpec', 'MODELS',
+           'PASSIVITY_MODES', 'SELECTION_POLICIES', 'REFIT_MODES', 'REJECT_REASONS', 'OK',
+           'WARN', 'ERROR']

@@ -1,0 +1,156 @@
+"""Health of the online estimator: counters, recent history, and the status they imply.
+
+``Health`` only records; ``status`` turns the record (plus the estimator's state) into a level
+and a message: each condition a user should act on is a WARN (or an ERROR) with its reason.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+__all__ = ['Health', 'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
+
+# Reasons a message can be rejected for (one counter each).
+REJECT_REASONS = ('empty', 'length_mismatch', 'bad_names', 'duplicate_name', 'missing_joint',
+                  'dimension_mismatch', 'too_many_joints', 'non_finite', 'out_of_range',
+                  'bad_stamp', 'missing_position')
+# Status levels (the values of diagnostic_msgs/DiagnosticStatus OK/WARN/ERROR).
+OK, WARN, ERROR = 0, 1, 2
+
+#: recent-message window for the "many rejected samples" status, and its threshold
+REJECT_WINDOW = 200
+REJECT_WARN_FRACTION = 0.1
+#: consecutive failed refits that make the status ERROR (one failure is a WARN)
+REFIT_FAIL_ERROR = 3
+
+
+@dataclass
+class Health:
+    """Counters of one estimator run (``OnlineEstimator.reset`` starts a new one)."""
+
+    rejected: Dict[str, int] = field(default_factory=lambda: {r: 0 for r in REJECT_REASONS})
+    messages_received: int = 0
+    messages_accepted: int = 0
+    samples_added: int = 0
+    samples_skipped: int = 0          # near-duplicates (novelty selection)
+    samples_rate_limited: int = 0
+    samples_outliers: int = 0         # isolated far outliers not learned
+    passivity_fallbacks: int = 0      # estimates replaced because their power was negative
+    nonfinite_outputs: int = 0        # estimates replaced because they were not finite
+    inverse_dynamics_errors: int = 0  # samples the inverse dynamics could not process
+    time_jumps_back: int = 0
+    time_jumps_forward: int = 0
+    refits_started: int = 0
+    refits_ok: int = 0
+    refits_failed: int = 0
+    refits_rejected: int = 0          # candidates the sanity check refused
+    recertifications: int = 0
+    consecutive_refit_failures: int = 0
+    last_refit_error: str = ''
+    last_refit_stamp: Optional[float] = None
+    last_refit_wall_time: Optional[float] = None
+    last_refit_duration_s: Optional[float] = None
+    last_refit_optimized: Optional[bool] = None
+    refit_durations: List[float] = field(default_factory=list)
+    recent_ok: deque = field(default_factory=lambda: deque(maxlen=REJECT_WINDOW))
+    latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
+
+    def reject(self, reason: str) -> None:
+        self.rejected[reason] += 1
+        self.recent_ok.append(False)
+
+    def accept(self) -> None:
+        self.messages_accepted += 1
+        self.recent_ok.append(True)
+
+    def refit_done(self, ok: bool, seconds: float, stamp, optimized: bool, error: str,
+                   wall_time: float) -> None:
+        self.last_refit_duration_s = seconds
+        self.refit_durations.append(seconds)
+        self.last_refit_wall_time = wall_time
+        self.last_refit_stamp = stamp
+        self.last_refit_optimized = optimized
+        if ok:
+            self.refits_ok += 1
+            self.consecutive_refit_failures = 0
+            self.last_refit_error = ''
+        else:
+            self.refits_failed += 1
+            self.consecutive_refit_failures += 1
+            self.last_refit_error = error
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+    @property
+    def recent_rejected_fraction(self) -> float:
+        r = self.recent_ok
+        return (r.count(False) / len(r)) if r else 0.0
+
+    def counters(self) -> dict:
+        lat = np.array(self.latencies) if self.latencies else None
+        return dict(
+            messages_received=self.messages_received, messages_accepted=self.messages_accepted,
+            samples_added=self.samples_added, samples_skipped=self.samples_skipped,
+            samples_rate_limited=self.samples_rate_limited,
+            samples_outliers=self.samples_outliers,
+            rejected=dict(self.rejected), rejected_total=self.rejected_total,
+            recent_rejected_fraction=self.recent_rejected_fraction,
+            refits_started=self.refits_started, refits_ok=self.refits_ok,
+            refits_failed=self.refits_failed, refits_rejected=self.refits_rejected,
+            last_refit_error=self.last_refit_error,
+            last_refit_stamp=self.last_refit_stamp,
+            last_refit_wall_time=self.last_refit_wall_time,
+            last_refit_duration_s=self.last_refit_duration_s,
+            last_refit_optimized=self.last_refit_optimized,
+            passivity_fallbacks=self.passivity_fallbacks,
+            nonfinite_outputs=self.nonfinite_outputs,
+            inverse_dynamics_errors=self.inverse_dynamics_errors,
+            time_jumps_back=self.time_jumps_back, time_jumps_forward=self.time_jumps_forward,
+            recertifications=self.recertifications,
+            latency_median_s=float(np.median(lat)) if lat is not None else float('nan'),
+            latency_p99_s=float(np.percentile(lat, 99)) if lat is not None else float('nan'),
+        )
+
+    def status(self, state: dict) -> tuple:
+        """(level, message) from the counters and the estimator ``state`` (keys: trained,
+        fill, min_samples, certifies, certified, stale, load_error, refit_running, warnings)."""
+        reasons, level = [], OK
+        if not state['trained']:
+            if state['fill'] < state['min_samples']:
+                reasons.append(f'not yet trained ({state["fill"]}/{state["min_samples"]} '
+                               'samples)')
+            elif self.refits_failed and state['certifies']:
+                reasons.append('not certified: no certified model yet, publishing prior mean')
+            else:
+                reasons.append('not yet trained (first fit running)')
+            level = WARN
+        elif state['stale']:
+            reasons.append('certificate being re-proven after updates (estimates passive '
+                           'pointwise meanwhile)')
+        elif state['certifies'] and not state['certified']:
+            reasons.append('not certified')
+            level = WARN
+        if self.recent_rejected_fraction > REJECT_WARN_FRACTION:
+            reasons.append(f'many rejected samples ({100 * self.recent_rejected_fraction:.0f}% '
+                           'of recent)')
+            level = max(level, WARN)
+        if self.consecutive_refit_failures and 'sanity check' in self.last_refit_error:
+            reasons.append(f'model rejected ({self.last_refit_error}); the previous one serves')
+            level = max(level, WARN)
+        elif self.consecutive_refit_failures:
+            reasons.append(f'refit failing ({self.consecutive_refit_failures} in a row: '
+                           f'{self.last_refit_error})')
+            level = max(level, ERROR if self.consecutive_refit_failures >= REFIT_FAIL_ERROR
+                        else WARN)
+        if state['load_error']:
+            reasons.append('model file not used')
+            level = max(level, WARN)
+        for w in state.get('warnings', ()):
+            reasons.append(w)
+            level = max(level, WARN)
+        return level, ('; '.join(reasons) if reasons else 'ok')

@@ -1,0 +1,119 @@
+"""The refit worker: turns a job into a candidate model, off the message path.
+
+A job is a snapshot (samples, hyper-parameters to start from, configuration) or, to re-prove a
+stale certificate, a copy of the current model. ``run_job`` knows nothing about the estimator
+that made the job: it builds the model with an injected factory, fits or re-proves it, and says
+whether the candidate may replace the current model (a certifying passivity mode only swaps in
+a proven model). The estimator then replays the samples that arrived meanwhile and swaps.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional, Tuple
+
+import numpy as np
+
+from dgp_ros.gp.passivity import policy_class
+
+__all__ = ['RefitJob', 'RefitResult', 'run_job', 'provable', 'sane']
+
+
+@dataclass
+class RefitJob:
+    """What to do: ``kind`` 'fit' (Q, T, optimize, hyper) or 'recertify' (model).
+
+    seq : samples the estimator had added when the snapshot was taken (for the catch-up);
+    generation : the estimator's reset count (a reset discards the result); stamp : message
+    stamp at the start (s); config : the ``EstimatorConfig`` the candidate is built for;
+    warm : refine ``hyper`` without restarts.
+    """
+
+    kind: str
+    config: object
+    seq: int
+    generation: int
+    stamp: Optional[float]
+    Q: Optional[np.ndarray] = None
+    T: Optional[np.ndarray] = None
+    optimize: bool = False
+    hyper: Optional[dict] = None
+    warm: bool = False
+    model: object = None
+
+
+@dataclass
+class RefitResult:
+    """The candidate (None when building it failed), whether it may be swapped in, why not,
+    and the wall time spent (s)."""
+
+    job: RefitJob
+    model: object
+    ok: bool
+    reason: str
+    seconds: float
+
+
+def provable(model, passivity: str) -> Tuple[bool, str]:
+    """(ok, reason): may ``model`` serve under ``passivity``? For a certifying mode the
+    certificate must hold; a stale one is re-proven here (this is the only caller that does)."""
+    if not policy_class(passivity).certifies:
+        return True, ''
+    try:
+        cert = model.certificate()
+        if cert.stale:
+            cert = model.recertify()
+    except Exception as exc:
+        return False, f'certificate failed: {type(exc).__name__}: {exc}'
+    if cert.certified:
+        return True, ''
+    return False, f'certificate does not hold (margin {cert.margin:.3g}, {cert.method})'
+
+
+#: a candidate's estimates may exceed the largest force of its data by at most this factor
+BOUND_FACTOR = 10.0
+
+
+def sane(model, Q: np.ndarray, T: np.ndarray, rng=None) -> Tuple[bool, str]:
+    """(ok, reason): are a candidate's estimates finite and bounded by ``BOUND_FACTOR`` x the
+    largest force of its data, on its data and on velocities up to 1.5 x beyond its data box?
+    A fit on a short, poorly excited stretch can extrapolate wildly; such a model must not
+    replace one that works."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    lo, hi = Q.min(axis=0), Q.max(axis=0)
+    c, w = 0.5 * (lo + hi), 0.75 * (hi - lo)
+    probe = np.vstack([Q, rng.uniform(c - w, c + w, (2000, Q.shape[1]))])
+    P = model.predict(probe)
+    limit = BOUND_FACTOR * np.maximum(np.abs(T).max(axis=0), 1e-12)
+    if not np.all(np.isfinite(P)):
+        return False, 'sanity check: non-finite estimates'
+    worst = np.abs(P).max(axis=0) / limit
+    if np.any(worst > 1.0):
+        j = int(np.argmax(worst))
+        return False, (f'sanity check: estimates up to {worst[j] * BOUND_FACTOR:.0f} x the largest '
+                       f'force of the data on output {j}')
+    return True, ''
+
+
+def run_job(job: RefitJob, factory: Callable) -> RefitResult:
+    """Build (fit) or re-prove the candidate of ``job``; never raises."""
+    t0 = time.perf_counter()
+    cfg = job.config
+    try:
+        if job.kind == 'recertify':
+            model = job.model
+        else:
+            kw = cfg.model_kwargs()
+            if job.hyper is not None:
+                kw['hyperparams'] = job.hyper
+                kw['warm_start'] = job.warm
+            model = factory(cfg.model, **kw)
+            model.fit(job.Q, job.T, optimize=job.optimize)
+            ok, why = sane(model, job.Q, job.T)
+            if not ok:
+                return RefitResult(job, model, False, why, time.perf_counter() - t0)
+        ok, why = provable(model, cfg.passivity)
+    except Exception as exc:
+        return RefitResult(job, None, False, f'{type(exc).__name__}: {exc}',
+                           time.perf_counter() - t0)
+    return RefitResult(job, model, ok, why, time.perf_counter() - t0)

@@ -1,0 +1,135 @@
+"""Hostile input through the online estimator (the hardening issue's findings 1, 2, 3, 6, 7):
+nothing a peer sends can crash it, freeze its learning, or make it publish a non-finite or
+non-passive value."""
+import numpy as np
+import pytest
+
+from dgp_ros.online import EstimatorConfig, OnlineEstimator
+from dgp_ros.online.selection import Selector
+
+NAMES = ['a', 'b', 'c']
+
+
+def truth(q):
+    return np.array([2.0, 1.0, 0.5]) * q + 0.3 * np.tanh(q / 0.1)
+
+
+def cfg(**kw):
+    base = dict(model='diag', passivity='projected', buffer_size=100, min_samples=20,
+                refit_period_s=2.0, refit_mode='sync', optimize_every_n_refits=0)
+    base.update(kw)
+    return EstimatorConfig(**base)
+
+
+def feed(est, t0, t1, dt=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for t in np.arange(t0, t1, dt):
+        q = np.array([np.sin(t), np.cos(0.7 * t), 0.5 * np.sin(0.3 * t + 1)])
+        out.append(est.process(t, NAMES, q, truth(q) + 0.01 * rng.normal(size=3)))
+    return out
+
+
+def test_one_in_range_outlier_does_not_freeze_learning():
+    est = OnlineEstimator(cfg())
+    feed(est, 0.0, 20.0)
+    before = est.diagnostics()['samples_added']
+    e = est.process(20.0, NAMES, [9999.0, 0.1, 0.1], [1.0, 1.0, 1.0])    # under the 1e4 limit
+    assert e is not None and e.power >= 0
+    out = feed(est, 20.01, 80.0)
+    d = est.diagnostics()
+    assert d['samples_added'] > before + 500, d       # learning goes on (it froze before)
+    assert d['samples_outliers'] >= 1 and 'stalled' not in d['message']
+    tail = out[-500:]
+    err = np.array([x.tau_hat - truth(x.qd) for x in tail])
+    ref = np.array([truth(x.qd) for x in tail])
+    assert np.mean(err ** 2) / np.var(ref) < 0.01
+    assert max(np.abs(x.tau_hat).max() for x in out) < 10.0
+
+
+def test_a_moving_regime_change_is_learned_not_dropped():
+    est = OnlineEstimator(cfg())
+    feed(est, 0.0, 10.0)
+    for t in np.arange(10.0, 12.0, 0.01):                 # now 50x faster on joint a
+        q = np.array([50.0 * np.sin(t), 0.1, 0.1])
+        est.process(t, NAMES, q, truth(q))
+    d = est.diagnostics()
+    assert d['samples_outliers'] <= Selector.OUTLIER_RUN - 1, d     # 0.1 s, then learned
+
+
+def test_non_finite_and_huge_values_never_reach_the_output():
+    est = OnlineEstimator(cfg())
+    feed(est, 0.0, 5.0)
+    for k in range(200):
+        assert est.process(5.0 + 0.01 * k, NAMES, [1e308, 1.0, 1.0], [1e308, 1.0, 1.0]) is None
+    assert est.diagnostics()['rejected']['out_of_range'] == 200
+    out = feed(est, 7.0, 10.0)
+    assert all(np.all(np.isfinite(x.tau_hat)) and x.power >= 0 for x in out)
+    with pytest.raises(ValueError, match='max_abs_velocity'):
+        cfg(max_abs_velocity=float('inf')).validate()
+
+
+def test_parameters_that_killed_the_node_are_refused_with_a_reason():
+    for field, value in (('selection_min_distance', 1e200), ('buffer_size', 10 ** 9),
+                         ('max_abs_velocity', float('inf')), ('refit_period_s', 1e308)):
+        with pytest.raises(ValueError, match=field):
+            cfg(**{field: value}).validate()
+    est = OnlineEstimator(cfg(passivity='certified'))
+    feed(est, 0.0, 1.0)
+    with pytest.raises(ValueError, match='operating_domain'):
+        est.check_reconfigure(cfg(passivity='certified', operating_domain=[-1.0, 1.0]))
+    est.check_reconfigure(cfg(passivity='certified', operating_domain=[-2, -2, -2, 2, 2, 2]))
+
+
+@pytest.mark.parametrize('stamp', [0.0, 1234.5])
+def test_constant_stamps_fall_back_to_arrival_time_and_say_so(stamp):
+    est = OnlineEstimator(cfg(min_sample_interval_s=0.0, selection='all'))
+    rng = np.random.default_rng(0)
+    for _ in range(600):
+        q = rng.uniform(-1, 1, 3)
+        e = est.process(stamp, NAMES, q, truth(q))
+        assert e is not None and e.stamp_s == stamp      # answers keep the message's stamp
+    d = est.diagnostics()
+    assert d['trained'] and d['samples_added'] >= 100, d
+    assert d['learning_clock'] == 'arrival' and 'stamps do not advance' in d['message']
+    assert d['level'] >= 1
+
+
+def test_a_first_message_with_30_joints_is_rejected():
+    est = OnlineEstimator(cfg())
+    names = [f'j{i}' for i in range(30)]
+    assert est.process(1.0, names, np.ones(30), np.ones(30)) is None
+    assert est.diagnostics()['rejected']['too_many_joints'] == 1
+    assert est.process(1.1, NAMES, [0.1, 0.2, 0.3], [1.0, 1.0, 1.0]) is not None
+
+
+def test_per_joint_parameters_for_another_joint_count_reject_messages_not_crash():
+    """selection_scale of 2 entries, 3-joint messages, no joints configured: rejected as
+    dimension_mismatch (it raised on every message after the first); reconfigure refuses it
+    once the joint count is known."""
+    est = OnlineEstimator(cfg(selection_scale=[1.0, 1.0]))
+    for k in range(5):
+        assert est.process(0.1 * k, NAMES, [0.1 * k, 0.2, 0.3], [1.0, 1.0, 1.0]) is None
+    assert est.diagnostics()['rejected']['dimension_mismatch'] == 5
+    est = OnlineEstimator(cfg())
+    feed(est, 0.0, 1.0)
+    import dataclasses
+    with pytest.raises(ValueError, match='selection_scale'):
+        est.reconfigure(dataclasses.replace(est.config, selection_scale=[1.0] * 7))
+    assert est.process(1.5, NAMES, [0.1, 0.2, 0.3], [1.0, 1.0, 1.0]) is not None
+
+
+def test_stamps_that_recover_switch_learning_back_and_far_jumps_do_not_force_refits():
+    est = OnlineEstimator(cfg(min_sample_interval_s=0.0, selection='all'))
+    for _ in range(25):
+        est.process(5.0, NAMES, [0.1, 0.2, 0.3], [1.0, 1.0, 1.0])
+    assert est.diagnostics()['learning_clock'] == 'arrival'
+    feed(est, 6.0, 10.0)
+    d = est.diagnostics()
+    assert d['learning_clock'] == 'stamp' and 'stamps do not advance' not in d['message']
+    assert d['trained']
+    n = d['refits_started']
+    for k in range(20):                         # far-future stamps between normal ones
+        est.process(1e9 + k, NAMES, [0.1, 0.2, 0.3], [1.0, 1.0, 1.0])
+        est.process(10.0 + 0.01 * k, NAMES, [0.1, 0.2, 0.3], [1.0, 1.0, 1.0])
+    assert est.diagnostics()['refits_started'] - n <= 2
