@@ -1,0 +1,23 @@
+"""Robot front end (DESIGN "Robot front end (real arms)"): from raw ``/joint_states`` to the
+friction residual the estimator learns. Pure numpy; no ROS import anywhere in this package, and
+pinocchio only when a URDF model is built.
+
+- ``inverse``: rigid-body inverse dynamics ``tau_rb(q, qd, qdd)`` from a URDF (pinocchio) or a
+  user plugin, chosen by the ``inverse_dynamics`` parameter (:func:`make_inverse_dynamics`);
+- ``filter``: :class:`AccelFilter`, the acceleration of the measured velocity, centred on the
+  sample it is paired with (no lag; the output trails the input by the half window);
+- ``residual``: :class:`FrictionResidual`, ``effort - tau_rb`` per wanted sample;
+- ``arm_sim``: simulated Panda / UR5 data with known friction and bias (tests, demo).
+"""
+from .arm_sim import (ARM_JOINTS, FRICTION_TABLES, example_robot_urdf, friction_truth,
+                      negative_power_fraction, simulate_arm)
+from .filter import DEFAULT_HALF_WINDOW_S, AccelFilter, AccelSample
+from .inverse import (INVERSE_DYNAMICS_CHOICES, PINOCCHIO_HINT, PluginInverseDynamics,
+                      UrdfInverseDynamics, make_inverse_dynamics)
+from .residual import FrictionResidual, ResidualSample
+
+__all__ = ['UrdfInverseDynamics', 'PluginInverseDynamics', 'make_inverse_dynamics',
+           'INVERSE_DYNAMICS_CHOICES', 'PINOCCHIO_HINT', 'AccelFilter', 'AccelSample',
+           'DEFAULT_HALF_WINDOW_S', 'FrictionResidual', 'ResidualSample', 'simulate_arm',
+           'friction_truth', 'example_robot_urdf', 'negative_power_fraction', 'ARM_JOINTS',
+           'FRICTION_TABLES']
