@@ -8,11 +8,13 @@
 
 The bag's ``sensor_msgs/JointState`` messages are streamed, in bag order, through
 :class:`dgp_ros.online.OnlineEstimator`: the same code path as the estimator node (one
-implementation), with ``refit_mode='sync'`` so that the result is deterministic. The stamp given
-to the estimator is ``header.stamp`` computed exactly as the node does, so replaying the bag a
-node saw gives the node's estimates (the tests check this to 1e-9).
+implementation), with ``refit_mode='sync'`` so that the result is deterministic. Messages are
+converted by :func:`dgp_ros.messages.joint_state_sample`, the node's converter, so the stamp
+given to the estimator is ``header.stamp`` computed exactly as the node does and replaying the
+bag a node saw gives the node's estimates (the tests check this to 1e-9).
 
-Messages are decoded with the rosbags typestore (pure Python; no rclpy, no DDS). Any JointState
+Messages are decoded with the rosbags typestore (pure Python; no rclpy, no DDS) by
+:func:`dgp_ros.bags.iter_joint_states`, which also picks the topic. Any JointState
 topic works: robot bags (``/joint_states`` with velocity and effort, extra joints, another order)
 too; ``--joints`` selects and orders the joints. Without ``--topic`` the topic is picked
 automatically if the choice is clear (a single JointState topic, else one named
@@ -44,26 +46,25 @@ import csv
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from dgp_ros.bagtools import BagError, iter_bag, open_bag
+from dgp_ros.bags import BagError, iter_joint_states, joint_state_topic, open_bag
+from dgp_ros.gp import KINDS, PASSIVITY_MODES
+from dgp_ros.gp.passivity import describe_modes
 
-JOINT_STATE = 'sensor_msgs/msg/JointState'
 EXIT_OK, EXIT_ERROR = 0, 2
 
 
 class ReplayError(Exception):
-    """Bad topic / joints / parameters: a one-line message for the user."""
-
-
-def stamp_seconds(sec: int, nanosec: int) -> float:
-    """Header stamp -> seconds, the same float operations as the estimator node."""
-    return sec + 1e-9 * nanosec
+    """Bad joints / parameters: a one-line message for the user (bag and topic problems are
+    :class:`~dgp_ros.bags.BagError`)."""
 
 
 # ----------------------------------------------------------------------------------- progress
@@ -87,8 +88,9 @@ class Progress:
         frac = self.n / self.total if self.total else 0.0
         fill = int(round(frac * self.width))
         el = time.monotonic() - self.t0
-        eta = (el / frac - el) if frac > 0 else float('nan')
-        eta_s = f'eta {eta:5.1f} s' if math.isfinite(eta) else ''
+        # the first refits are slower than the rest: no estimate before 5 % or 5 s
+        eta = (el / frac - el) if frac >= 0.05 or (frac > 0 and el >= 5.0) else float('nan')
+        eta_s = f'eta {eta:5.1f} s' if math.isfinite(eta) else 'eta ...'
         return (f'replay [{"#" * fill}{"." * (self.width - fill)}] {100 * frac:5.1f}% '
                 f'{self.n}/{self.total} msgs {el:6.1f} s {eta_s}')
 
@@ -117,32 +119,6 @@ class Progress:
         elif self._last_decile < 10:
             self.stream.write(self._line() + '\n')
         self.stream.flush()
-
-
-# ------------------------------------------------------------------------------------ topics
-def choose_topic(reader, topic: Optional[str]) -> str:
-    """The JointState topic to replay (see the module docstring for the automatic choice)."""
-    topics = reader.topics
-    js = sorted(t for t, info in topics.items() if info.msgtype == JOINT_STATE)
-    if topic:
-        cands = [topic] if topic.startswith('/') else [topic, '/' + topic]
-        for c in cands:
-            if c in topics:
-                if topics[c].msgtype != JOINT_STATE:
-                    raise ReplayError(f'topic {c} is {topics[c].msgtype}, not {JOINT_STATE}')
-                return c
-        raise ReplayError(f'topic {topic} not in bag; JointState topics: '
-                          f'{", ".join(js) or "none"}')
-    if len(js) == 1:
-        return js[0]
-    if not js:
-        raise ReplayError('no sensor_msgs/msg/JointState topic in bag (topics: '
-                          f'{", ".join(sorted(topics)) or "none"})')
-    for suffix in ('generalized_state', 'joint_states'):
-        named = [t for t in js if t.rsplit('/', 1)[-1] == suffix]
-        if len(named) == 1:
-            return named[0]
-    raise ReplayError(f'several JointState topics ({", ".join(js)}); choose one with --topic')
 
 
 # ------------------------------------------------------------------------------------ config
@@ -186,70 +162,58 @@ def build_config(params: Optional[dict] = None, **overrides):
 
 
 # ------------------------------------------------------------------------------------ replay
-def decode_joint_states(bag, topic: Optional[str] = None, reader=None, stamp: str = 'header'):
-    """Yield ``(stamp_s, names, velocity, effort, bag_t_ns)`` for every JointState on ``topic``.
-
-    ``stamp='header'`` (as the node) or ``'bag'`` (receive time recorded in the bag).
-    An undecodable message yields ``None`` (counted as rejected by the caller).
-    """
-    from dgp_ros.bagtools import typestore
-    ts = typestore()
-    own = reader is None
-    if own:
-        reader = open_bag(bag)
-    try:
-        topic = choose_topic(reader, topic)
-        for conn, t, raw in iter_bag(bag, topics=[topic], reader=reader):
-            try:
-                m = ts.deserialize_cdr(raw, conn.msgtype)
-            except Exception:
-                yield None
-                continue
-            s = (stamp_seconds(int(m.header.stamp.sec), int(m.header.stamp.nanosec))
-                 if stamp == 'header' else t * 1e-9)
-            yield s, list(m.name), m.velocity, m.effort, t
-    finally:
-        if own:
-            reader.close()
-
-
 def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False,
-           stamp: str = 'header'):
+           stamp: str = 'header', on_estimate=None):
     """Stream a bag through an OnlineEstimator; returns ``(estimates, estimator, info)``.
 
-    ``estimates`` is the list of :class:`dgp_ros.online.Estimate` (``None`` entries dropped);
-    ``info`` has the topic, message counts, undecodable count and timings.
+    ``estimates`` is the list of :class:`dgp_ros.online.Estimate` (rejected messages have none);
+    ``on_estimate(e)`` is called with each as it comes (partial outputs); ``info`` has the
+    topic, message counts, undecodable count, timings, the joint names of the first message
+    and ``interrupted`` (a KeyboardInterrupt, i.e. SIGINT, ends the stream early: what was
+    estimated so far is returned).
     """
     from dgp_ros.online import OnlineEstimator
     config = config if config is not None else build_config()
     if config.refit_mode != 'sync':
         raise ReplayError("replay needs refit_mode='sync' (deterministic)")
-    est = OnlineEstimator(config)
+    try:
+        est = OnlineEstimator(config)
+    except ValueError as exc:
+        raise ReplayError(f'invalid estimator parameters: {exc}') from None
     reader = open_bag(bag)
     t0 = time.perf_counter()
     out, n, undecodable = [], 0, 0
     t_proc = 0.0
+    seen_names, interrupted = None, False
     try:
-        topic = choose_topic(reader, topic)
+        topic = joint_state_topic(reader, topic)
         bar = Progress(reader.topics[topic].msgcount, enabled=progress)
-        for item in decode_joint_states(bag, topic, reader=reader, stamp=stamp):
-            n += 1
-            if item is None:
-                undecodable += 1
-            else:
-                s, names, v, e, _ = item
-                tp = time.perf_counter()
-                r = est.process(s, names, v, e)
-                t_proc += time.perf_counter() - tp
-                if r is not None:
-                    out.append(r)
-            bar.update(n)
+        try:
+            for sample in iter_joint_states(bag, topic, stamp=stamp, reader=reader):
+                n += 1
+                if sample is None:
+                    undecodable += 1
+                else:
+                    if seen_names is None:
+                        seen_names = list(sample.names)
+                    tp = time.perf_counter()
+                    r = est.process(sample.stamp_s, sample.names, sample.velocity,
+                                    sample.effort, sample.position)
+                    t_proc += time.perf_counter() - tp
+                    if r is not None:
+                        out.append(r)
+                        if on_estimate is not None:
+                            on_estimate(r)
+                bar.update(n)
+        except KeyboardInterrupt:
+            interrupted = True
         bar.close()
     finally:
         reader.close()
         est.close()
     info = dict(topic=topic, messages=n, undecodable=undecodable,
-                wall_time_s=time.perf_counter() - t0, process_time_s=t_proc)
+                wall_time_s=time.perf_counter() - t0, process_time_s=t_proc,
+                bag_joints=seen_names or [], interrupted=interrupted)
     return out, est, info
 
 
@@ -298,20 +262,65 @@ def arrays_of(estimates):
     )
 
 
-def write_csv(path, estimates, names):
-    cols = (['t'] + [f'q_{j}' for j in names] + [f'tau_{j}' for j in names]
-            + [f'tau_hat_{j}' for j in names] + [f'stddev_{j}' for j in names]
-            + ['P', 'P_hat', 'source', 'added'])
-    r = repr
-    with open(path, 'w', newline='') as f:
-        w = csv.writer(f)
-        w.writerow(cols)
-        for e in estimates:
-            w.writerow([r(float(e.stamp_s))] + [r(float(x)) for x in e.qd]
-                       + [r(float(x)) for x in e.tau] + [r(float(x)) for x in e.tau_hat]
-                       + [r(float(x)) for x in e.stddev]
-                       + [r(float(e.measured_power)), r(float(e.power)), e.source,
-                          int(bool(e.added))])
+CSV_FIXED = ('P', 'P_hat', 'source', 'added')
+
+
+class CsvWriter:
+    """``estimates.csv`` written row by row as estimates come (flushed about once a second), so
+    that an interrupted or killed replay leaves what it had."""
+
+    def __init__(self, path):
+        self.path = path
+        self._f = None
+        self._w = None
+        self._flushed = time.monotonic()
+
+    def __call__(self, e) -> None:
+        if self._w is None:
+            names = e.names or [f'q{i}' for i in range(e.qd.size)]
+            self._f = open(self.path, 'w', newline='')
+            self._w = csv.writer(self._f)
+            self._w.writerow(['t'] + [f'{k}_{j}' for k in ('q', 'tau', 'tau_hat', 'stddev')
+                                      for j in names] + list(CSV_FIXED))
+        r = repr
+        self._w.writerow([r(float(e.stamp_s))] + [r(float(x)) for x in e.qd]
+                         + [r(float(x)) for x in e.tau] + [r(float(x)) for x in e.tau_hat]
+                         + [r(float(x)) for x in e.stddev]
+                         + [r(float(e.measured_power)), r(float(e.power)), e.source,
+                            int(bool(e.added))])
+        now = time.monotonic()
+        if now - self._flushed >= 1.0:
+            self._flushed = now
+            self._f.flush()
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+        elif not os.path.exists(self.path):
+            Path(self.path).write_text('')
+
+
+def write_csv(path, estimates, names=None):
+    """Write ``estimates`` (a list of Estimate) to ``path`` (see the module docstring)."""
+    w = CsvWriter(path)
+    for e in estimates:
+        w(e)
+    w.close()
+
+
+def _final_certificate(est) -> dict:
+    """The certificate of the final model, re-proven first if updates left it stale (offline,
+    so the branch-and-bound may take its time here)."""
+    model = est.model
+    if model is None:
+        return dict(certified=False, margin=None, method='', domain=None, stale=False)
+    cert = model.certificate()
+    if cert.stale:
+        cert = model.recertify()
+    return dict(certified=bool(cert.certified), margin=float(cert.margin), method=cert.method,
+                domain=None if cert.domain is None else [np.asarray(v).tolist()
+                                                         for v in cert.domain],
+                stale=bool(cert.stale), correction_scale=float(cert.correction_scale))
 
 
 def summarize(bag, estimates, est, info, names, mass=None) -> dict:
@@ -335,7 +344,7 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
                 d['rmse_per_mass'] = math.sqrt(mse) / mass
             per[j] = d
     k = 0 if A is None else len(A['t'])
-    durs = list(est.refit_durations)
+    durs = list(est.health.refit_durations)
     s = dict(
         bag=str(bag), topic=info['topic'], joints=list(names),
         messages=info['messages'], estimates=k,
@@ -350,16 +359,20 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
         if k else {},
         samples_added=diag['samples_added'], samples_skipped=diag['samples_skipped'],
         samples_rate_limited=diag['samples_rate_limited'],
-        refits=dict(started=est.refits_started, ok=diag['refits_ok'],
+        refits=dict(started=diag['refits_started'], ok=diag['refits_ok'],
                     failed=diag['refits_failed'], last_error=diag['last_refit_error']),
         rejected=dict(diag['rejected'], undecodable=info['undecodable']),
         rejected_total=diag['rejected_total'] + info['undecodable'],
         time_jumps_back=diag['time_jumps_back'],
         passivity_fallbacks=diag['passivity_fallbacks'],
-        certificate=dict(certified=diag['certified'], margin=diag['margin'],
-                         method=diag['method'], domain=diag['domain']),
+        certificate=_final_certificate(est),
+        status=dict(level=diag['level'], message=diag['message']),
+        learned_negative_power_fraction=diag['negative_power_fraction'],
+        interrupted=info.get('interrupted', False),
         timings=dict(
             wall_time_s=info['wall_time_s'],
+            wall_per_data_second=(info['wall_time_s'] / float(A['t'][-1] - A['t'][0])
+                                  if k > 1 and A['t'][-1] > A['t'][0] else float('nan')),
             process_total_s=info['process_time_s'],
             process_per_msg_median_s=float(np.median(A['proc'])) if k else float('nan'),
             process_per_msg_p99_s=float(np.percentile(A['proc'], 99)) if k else float('nan'),
@@ -443,23 +456,54 @@ def make_plots(out: Path, estimates, names, mass=None) -> list:
     return files
 
 
-def run(bag, out, topic=None, config=None, mass=None, plots=True, progress=False,
-        stamp='header') -> dict:
-    """Replay ``bag`` and write the outputs to ``out``; returns the summary dict."""
-    out = Path(out)
-    estimates, est, info = replay(bag, topic=topic, config=config, progress=progress,
-                                  stamp=stamp)
-    names = (estimates[0].names if estimates and estimates[0].names else
-             est.names or [f'q{i}' for i in range(estimates[0].qd.size if estimates else 0)])
-    out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / 'estimates.csv', estimates, names)
-    summary = summarize(bag, estimates, est, info, names, mass=mass)
-    if plots:
-        summary['plots'] = [p.name for p in make_plots(out, estimates, names, mass=mass)]
+def _write_summary(out: Path, summary: dict) -> None:
     tmp = out / 'summary.json.tmp'
     tmp.write_text(json.dumps(summary, indent=2, sort_keys=False) + '\n')
     os.replace(tmp, out / 'summary.json')
+
+
+def run(bag, out, topic=None, config=None, mass=None, plots=True, progress=False,
+        stamp='header', save_model: Optional[str] = None) -> dict:
+    """Replay ``bag`` and write the outputs to ``out``; returns the summary dict.
+
+    ``estimates.csv`` grows as the replay runs; ``summary.json`` (and the plots) are written at
+    the end, also after a SIGINT (``summary['interrupted']``). ``save_model``: write the final
+    model there (loadable with ``dgp_ros.gp.load_model``). ReplayError when no message could be
+    estimated, with the reason.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    writer = CsvWriter(out / 'estimates.csv')
+    try:
+        estimates, est, info = replay(bag, topic=topic, config=config, progress=progress,
+                                      stamp=stamp, on_estimate=writer)
+    finally:
+        writer.close()
+    names = (estimates[0].names if estimates and estimates[0].names else
+             est.names or [f'q{i}' for i in range(estimates[0].qd.size if estimates else 0)])
+    summary = summarize(bag, estimates, est, info, names, mass=mass)
+    if plots and estimates:
+        summary['plots'] = [p.name for p in make_plots(out, estimates, names, mass=mass)]
+    if save_model and est.trained and not info['interrupted']:
+        summary['model_file'] = est.save(save_model)
+    _write_summary(out, summary)
+    if not estimates:
+        raise ReplayError(_nothing_estimated(info, summary))
+    if save_model and not est.trained:
+        raise ReplayError(f'no model to save to {save_model}: the estimator was never trained '
+                          f'({summary["status"]["message"]})')
     return summary
+
+
+def _nothing_estimated(info, summary) -> str:
+    rej = {k: v for k, v in summary['rejected'].items() if v}
+    why = ', '.join(f'{v} {k}' for k, v in sorted(rej.items(), key=lambda kv: -kv[1]))
+    msg = f'no message of the {info["messages"]} on {info["topic"]} could be estimated'
+    if why:
+        msg += f' (rejected: {why})'
+    if rej.get('missing_joint') and info.get('bag_joints'):
+        msg += f'; the bag\'s joints are {", ".join(map(str, info["bag_joints"]))}'
+    return msg
 
 
 # --------------------------------------------------------------------------------------- CLI
@@ -477,6 +521,10 @@ def _parse_set(specs) -> dict:
     return d
 
 
+def _interrupt(*_):
+    raise KeyboardInterrupt
+
+
 def main(argv=None) -> int:
     prog = 'dgp-replay'
     ap = argparse.ArgumentParser(
@@ -486,17 +534,24 @@ def main(argv=None) -> int:
     ap.add_argument('--out', '-o', required=True, help='output directory (created)')
     ap.add_argument('--topic', '-t', help='JointState topic (default: automatic)')
     ap.add_argument('--joints', '-j', help='comma-separated joint names to select and order')
-    ap.add_argument('--model', choices=('full', 'diag', 'ard'))
-    ap.add_argument('--passivity', choices=('none', 'paper', 'certified', 'projected'))
+    ap.add_argument('--model', choices=KINDS)
+    ap.add_argument('--passivity', choices=PASSIVITY_MODES,
+                    help=describe_modes())
+    ap.add_argument('--save-model', metavar='PATH',
+                    help='write the final model here (.npz; load with dgp_ros.gp.load_model, '
+                         'or give it to the node as model_path)')
     ap.add_argument('--mass', type=float, help='mass in kg: errors are also shown divided by it')
     ap.add_argument('--params', help='ROS 2 parameter file for the estimator (ros__parameters)')
     ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE',
-                    help='estimator parameter override (YAML value); repeatable')
+                    help='estimator parameter override (YAML value), the same names as the '
+                         'node\'s (estimator --help); repeatable')
     ap.add_argument('--stamp', choices=('header', 'bag'), default='header',
                     help='time given to the estimator: header.stamp (as the node) or bag time')
     ap.add_argument('--no-plots', action='store_true')
     ap.add_argument('--quiet', '-q', action='store_true', help='no progress bar or summary line')
     a = ap.parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _interrupt)     # SIGTERM ends the replay like SIGINT
     if a.mass is not None and not (math.isfinite(a.mass) and a.mass > 0):
         ap.error('--mass must be a positive number')
     try:
@@ -512,8 +567,15 @@ def main(argv=None) -> int:
                 overrides[k] = v
         config = build_config(params, **overrides)
         t0 = time.perf_counter()
+        if a.save_model:
+            from dgp_ros.online.config import check_model_path
+            try:
+                check_model_path(a.save_model)
+            except ValueError as exc:
+                raise ReplayError(f'--save-model: {exc}') from None
         s = run(a.bag, a.out, topic=a.topic, config=config, mass=a.mass,
-                plots=not a.no_plots, progress=not a.quiet, stamp=a.stamp)
+                plots=not a.no_plots, progress=not a.quiet, stamp=a.stamp,
+                save_model=a.save_model)
         wall = time.perf_counter() - t0
     except (BagError, ReplayError) as exc:
         print(f'{prog}: error: {exc}', file=sys.stderr)
@@ -521,6 +583,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f'{prog}: interrupted', file=sys.stderr)
         return 130
+    if s.get('interrupted'):
+        print(f'{prog}: interrupted; partial results ({s["estimates"]} estimates) in {a.out}',
+              file=sys.stderr)
+        return 130
+    if s['status']['level'] > 0:
+        print(f'{prog}: warning: {s["status"]["message"]}', file=sys.stderr)
     if not a.quiet:
         nm = ', '.join(f'{j} {v:.4g}' if v is not None else
                        f'{j} inf/n.a. ({s["outputs"][j]["huge_or_nonfinite"]} huge estimates)'

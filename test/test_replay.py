@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from dgp_ros import bagtools
+from dgp_ros.bags import write_joint_state_bag
 from dgp_ros.replay import build_config, main as replay_main, replay, run
 
 JS = 'sensor_msgs/msg/JointState'
@@ -25,26 +25,9 @@ PARAMS = dict(model='full', passivity='projected', buffer_size=40, min_samples=1
 
 
 def write_js_bag(path, rows, storage='sqlite3', topic='/joint_states', extra_topics=()):
-    """JointState bag written with rosbags only. rows: (t_s, names, velocity, effort)."""
-    from rosbags.rosbag2 import Writer
-    ts = bagtools.typestore()
-    T = ts.types
-    w = Writer(path, version=9, storage_plugin=bagtools._storage_plugin(storage))
-    w.open()
-    conns = [w.add_connection(topic, JS, typestore=ts)]
-    conns += [w.add_connection(t, JS, typestore=ts) for t in extra_topics]
-    for t_s, names, v, e in rows:
-        sec = int(np.floor(t_s))
-        nsec = int(round((t_s - sec) * 1e9))
-        msg = T[JS](header=T['std_msgs/msg/Header'](
-            stamp=T['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec), frame_id=''),
-            name=list(names), position=np.zeros(len(names)), velocity=np.asarray(v, float),
-            effort=np.asarray(e, float))
-        raw = ts.serialize_cdr(msg, JS)
-        for c in conns:
-            w.write(c, sec * 10**9 + nsec, raw)
-    w.close()
-    return path
+    """JointState bag (rosbags only). rows: (t_s, names, velocity, effort)."""
+    return write_joint_state_bag(path, [(t, n, np.zeros(len(n)), v, e) for t, n, v, e in rows],
+                                 topic=[topic, *extra_topics], storage=storage)
 
 
 def passive_data(n, N=3, seed=0):
@@ -101,6 +84,7 @@ def test_live_and_played_bag_equal_offline_replay(tmp_path, storage):
     from rclpy.qos import QoSProfile
     from sensor_msgs.msg import JointState
 
+    from dgp_ros.bags.ros import Player, Recorder
     from dgp_ros.estimator_node import EstimatorNode
 
     n = 44                   # <= the node's input queue depth (50): nothing can be dropped
@@ -139,8 +123,8 @@ def test_live_and_played_bag_equal_offline_replay(tmp_path, storage):
         sink = Node('sink', context=ctx)
         nodes += [est_node, src, recn, sink]
         pub = src.create_publisher(JointState, 'generalized_state', QoSProfile(depth=100))
-        rec = bagtools.Recorder(recn, bag, {'generalized_state': JS}, storage=storage,
-                                log=lambda s: None)
+        rec = Recorder(recn, bag, {'generalized_state': JS}, storage=storage,
+                       log=lambda s: None)
         live = {}
         collector(sink, live)
         ex = SingleThreadedExecutor(context=ctx)
@@ -163,15 +147,20 @@ def test_live_and_played_bag_equal_offline_replay(tmp_path, storage):
             pub.publish(m)
             assert _wait(lambda: len(live) == i + 1, 60), f'no estimate for message {i}'
         assert _wait(lambda: rec.count == n, 10)
+        stop.set()                  # rclpy cannot destroy what a spinning executor waits on
+        th.join(10)
         rec.close()
         ex.remove_node(est_node)
         est_node.destroy_node()
         nodes.remove(est_node)
+        stop = threading.Event()
+        th = threading.Thread(target=spin, daemon=True)
+        th.start()
 
         # offline replay of the recorded bag (no DDS): same estimates
         offline, est, info = replay(bag, config=build_config(params))
         assert info['topic'] == '/generalized_state' and len(offline) == n
-        assert est.refits_ok >= 3                  # several refits happened on the way
+        assert est.health.refits_ok >= 3                  # several refits happened on the way
         assert {e.source for e in offline} == {'prior', 'model'}
         d_live = _max_diff(live, offline)
         assert d_live <= 1e-9, d_live
@@ -187,8 +176,7 @@ def test_live_and_played_bag_equal_offline_replay(tmp_path, storage):
         ex.add_node(sink2)
         assert _wait(lambda: est2.pub_force.get_subscription_count() >= 1 and
                      est2.pub_std.get_subscription_count() >= 1, 20)
-        player = bagtools.Player(src, bag, rate=0.0, wait_for_subscribers=20,
-                                 log=lambda s: None)
+        player = Player(src, bag, rate=0.0, wait_for_subscribers=20, log=lambda s: None)
         assert player.run() == n
         assert _wait(lambda: len(played) == n, 120), f'{len(played)}/{n} estimates'
         d_play = _max_diff(played, offline)
@@ -233,7 +221,7 @@ def test_robot_bag_extra_joints_other_order(tmp_path):
     ref, _, _ = replay(b_clean, config=build_config(params))
     got, est, info = replay(b_robot, config=build_config(params, joints=['shoulder', 'elbow']))
     assert info['topic'] == '/joint_states'
-    assert est.rejected['missing_joint'] == 1
+    assert est.health.rejected['missing_joint'] == 1
     assert len(got) == len(ref) == n
     for a, b in zip(ref, got):
         assert b.names == ['shoulder', 'elbow']
@@ -281,14 +269,16 @@ def test_replay_cli_errors(tmp_path, capsys):
         (['--topic', 'arm/state', '--joints', 'a,zz', '--set', 'min_samples=2'], None),
         (['--topic', '/arm/state', '--set', 'buffer_size=1'], 'buffer_size'),
         (['--topic', '/arm/state', '--set', 'no_such_param=1'], 'no_such_param'),
-        (['--topic', '/arm/state', '--model', 'ard', '--passivity', 'certified'], 'ARD'),
+        (['--topic', '/arm/state', '--model', 'ard', '--passivity', 'certified'], "'ard'"),
     ]
     for extra, expect in cases:
         rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '-q', '--no-plots'] + extra)
         err = capsys.readouterr().err
         if expect is None:
-            # every message lacks joint zz: nothing to estimate, but a clean summary
-            assert rc == 0, err
+            # every message lacks joint zz: nothing to estimate -> exit 2 with the reason and
+            # the bag's joints; the summary is still written
+            assert rc == 2, err
+            assert '5 missing_joint' in err and "joints are a, b" in err, err
             s = json.loads((tmp_path / 'o' / 'summary.json').read_text())
             assert s['estimates'] == 0 and s['rejected']['missing_joint'] == 5
             continue

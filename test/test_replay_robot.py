@@ -1,0 +1,117 @@
+"""dgp-replay on robot bags: raw /joint_states of a simulated Panda (gravity and inertia in the
+effort), with and without inverse dynamics; --save-model; partial outputs on SIGINT."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from dgp_ros.bags import write_joint_state_bag
+from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, friction_truth, simulate_arm
+from dgp_ros.gp import load_model
+from dgp_ros.replay import main as replay_main
+
+NAMES = list(ARM_JOINTS['panda'])
+
+
+@pytest.fixture(scope='module')
+def panda_bag(tmp_path_factory):
+    d = simulate_arm('panda', 10.0, seed=3)
+    bag = tmp_path_factory.mktemp('bag') / 'panda'
+    samples = [(t, NAMES + ['panda_finger_joint1'], np.r_[q, 0.02], np.r_[v, 0.0],
+                np.r_[e, 0.1]) for t, q, v, e in zip(d['t'], d['q'], d['qd'], d['effort'])]
+    write_joint_state_bag(bag, samples, topic='/joint_states')
+    return bag, d
+
+
+COMMON = ['--model', 'diag', '--joints', ','.join(NAMES), '--no-plots', '-q',
+          '--set', 'prior=friction', '--set', 'bias=true', '--set', 'buffer_size=150',
+          '--set', 'min_samples=60', '--set', 'refit_period_s=0.0']
+
+
+def test_urdf_replay_learns_friction_and_saves_a_loadable_model(panda_bag, tmp_path, capsys):
+    bag, d = panda_bag
+    out, model = tmp_path / 'o', tmp_path / 'm.npz'
+    rc = replay_main([str(bag), '--out', str(out), '--save-model', str(model),
+                      '--set', 'inverse_dynamics=urdf',
+                      '--set', f'urdf_file={example_robot_urdf("panda")}'] + COMMON)
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    s = json.loads((out / 'summary.json').read_text())
+    assert s['status']['level'] == 0, s['status']
+    assert s['learned_negative_power_fraction'] < 0.1
+    assert s['estimates'] == len(d['t']) and s['model_file'] == str(model)
+    m = load_model(model)
+    later = simulate_arm('panda', 16.0, seed=3)
+    Qs = later['qd_true'][10000::20]
+    truth = friction_truth('panda', Qs)
+    nmse = np.mean((m.predict(Qs) - truth) ** 2, axis=0) / np.var(truth, axis=0)
+    assert np.median(nmse) < 0.5, nmse              # held out: the next 6 s of the trajectory
+    assert np.einsum('ij,ij->i', Qs, m.predict(Qs)).min() >= 0
+
+
+def test_raw_effort_replay_warns_with_the_reason(panda_bag, tmp_path, capsys):
+    bag, _ = panda_bag
+    rc = replay_main([str(bag), '--out', str(tmp_path / 'o')] + COMMON)
+    err = capsys.readouterr().err
+    assert rc == 0
+    s = json.loads((tmp_path / 'o' / 'summary.json').read_text())
+    assert s['status']['level'] >= 1 and 'inverse_dynamics' in s['status']['message']
+    assert s['learned_negative_power_fraction'] > 0.2
+    assert 'warning: ' in err and 'data are not damping' in err
+
+
+# an inverse-dynamics plugin (zero rigid-body torque) that holds the replay at its 3000th call
+# until a signal comes (bounded): the SIGINT then lands mid-stream whatever the replay's speed
+GATE_PLUGIN = """
+import os, time
+import numpy as np
+calls = 0
+def tau_rb(q, qd, qdd):
+    global calls
+    calls += 1
+    if calls == 3000:
+        open(os.environ['DGP_TEST_GATE'], 'w').close()
+        end = time.monotonic() + 120
+        while time.monotonic() < end:
+            time.sleep(0.01)
+    return np.zeros_like(q)
+"""
+
+
+def test_sigint_leaves_partial_csv_and_summary(panda_bag, tmp_path):
+    bag, _ = panda_bag
+    out = tmp_path / 'o'
+    (tmp_path / 'gate_plugin.py').write_text(GATE_PLUGIN)
+    gate = tmp_path / 'held'
+    env = dict(os.environ, DGP_TEST_GATE=str(gate),
+               PYTHONPATH=os.pathsep.join([str(tmp_path)] + [
+                   p for p in [os.environ.get('PYTHONPATH')] if p]))
+    cmd = [sys.executable, '-m', 'dgp_ros.replay', str(bag), '--out', str(out), '--model', 'full',
+           '--joints', ','.join(NAMES), '--set', 'min_sample_interval_s=0.0', '--no-plots',
+           '--set', 'inverse_dynamics=python:gate_plugin:tau_rb']
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    csv_file = out / 'estimates.csv'
+    try:
+        t_end = time.monotonic() + 120
+        while time.monotonic() < t_end and not gate.exists() and p.poll() is None:
+            time.sleep(0.05)
+        assert gate.exists(), 'the replay never reached the 3000th sample'
+        assert csv_file.stat().st_size > 0              # written as it goes
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert p.returncode == 130, err
+    assert 'Traceback' not in err and 'partial results' in err
+    s = json.loads((out / 'summary.json').read_text())
+    rows = csv_file.read_text().splitlines()
+    assert s['interrupted'] and 0 < s['estimates'] < 10000
+    assert len(rows) - 1 >= s['estimates'] - 1                  # flushed rows, header + data
+    assert not os.path.exists(out / 'summary.json.tmp')
