@@ -150,6 +150,7 @@ class OnlineEstimator:
         self._clock: Optional[float] = None   # stamp of the last refit decision
         self._last_recert: Optional[float] = None
         self._refit_requested = False
+        self._retry_at: Optional[int] = None  # _seq at which a rejected candidate is retried
         self._last_est: Optional[Estimate] = None
         if not keep_health:
             self.health = Health()
@@ -201,6 +202,7 @@ class OnlineEstimator:
                 h.reject('bad_stamp')
                 return None
             names, qd, tau, q = sel
+            h.gaps.note(stamp)
             if self._N is None:
                 try:
                     self.config.check_dimension(qd.size)
@@ -342,7 +344,15 @@ class OnlineEstimator:
         h.samples_added += 1
         self._prior = None
         if self.refit_running():
-            self._pending.append((self._seq, qd.copy(), target.copy()))
+            # the incumbent's answer before it learns the sample: the fair opponent of a
+            # candidate that has not seen it either (see _held_out)
+            before = None
+            if self._model is not None:
+                try:
+                    before = self._model.predict(qd[None, :])[0]
+                except Exception:       # noqa: BLE001 - then the sample only serves the replay
+                    before = None
+            self._pending.append((self._seq, qd.copy(), target.copy(), before))
         if self._model is not None:
             try:
                 self._model.update(qd, target)
@@ -449,9 +459,11 @@ class OnlineEstimator:
                or (cfg.refit_period_s > 0 and self._clock is not None and
                    stamp - self._clock >= cfg.refit_period_s)                 # periodic
                or (self._model is not None and self._hypers_outgrown() and
-                   self.health.consecutive_refit_failures == 0))              # buffer doubled
+                   self.health.consecutive_refit_failures == 0)               # buffer doubled
+               or (self._retry_at is not None and self._seq >= self._retry_at))  # rejected
         if due:
             self._refit_requested = False
+            self._retry_at = None
             self._clock = stamp
             return self._fit_job()
         if self._model is not None and self._model.certificate().stale:
@@ -530,7 +542,7 @@ class OnlineEstimator:
                 with self._lock:
                     if job.generation != self._generation:
                         return False, 'discarded: the estimator was reset'
-                    newer = [(s, q, t) for (s, q, t) in self._pending if s > seq]
+                    newer = [(s, q, t) for (s, q, t, _) in self._pending if s > seq]
                     backlog = max(self.MIN_SNAPSHOT_BACKLOG, cfg.buffer_size // 4)
                     snapshot = None
                     if job.kind == 'fit' and rounds <= 5 and len(newer) > backlog:
@@ -562,6 +574,14 @@ class OnlineEstimator:
                 return ok, (f'recertified in {dt:.3f} s' if ok else h.last_refit_error)
             if not ok and why.startswith('sanity check') and 'samples that arrived' not in why:
                 h.refits_rejected += 1
+            if ok:
+                self._retry_at = None
+            elif why.startswith('sanity check') and \
+                    h.consecutive_refit_failures < self.MAX_RETRIES:
+                # a rejected candidate is retried once fresh samples arrived (it learns from the
+                # ones it failed on), not only at the next refit period; a short bag, or
+                # refit_period_s = 0, would otherwise keep the first model for good
+                self._retry_at = self._seq + max(10, cfg.buffer_size // 4)
             h.refit_done(ok, dt, job.stamp, job.optimize,
                          '' if ok else (why if model is None else f'not swapped in: {why}'),
                          time.time())
@@ -575,26 +595,32 @@ class OnlineEstimator:
         return (True, f'refit ok in {dt:.3f} s') if ok else (False, error)
 
     #: a candidate whose error on the samples that arrived during its fit exceeds the current
-    #: model's by this factor (and the noise) is not swapped in
+    #: model's by this factor (plus 1 % of their variance) is not swapped in
     HELD_OUT_FACTOR = 3.0
+    #: rejected candidates retried on fresh data before waiting for the next refit period
+    MAX_RETRIES = 3
 
     def _held_out(self, model, seq: int) -> Tuple[bool, str]:
         """Compare the candidate with the current model on the samples that arrived while it was
         fitted (it has not seen them; there are none in sync mode)."""
         with self._lock:
-            newer = [(q, t) for (s, q, t) in self._pending if s > seq]
-            current = self._model
-        if current is None or len(newer) < 10:
+            newer = [(q, t, b) for (s, q, t, b) in self._pending if s > seq and b is not None]
+        if len(newer) < 10:
             return True, ''
-        Q = np.array([q for q, _ in newer])
-        T = np.array([t for _, t in newer])
+        Q = np.array([q for q, _, _ in newer])
+        T = np.array([t for _, t, _ in newer])
+        before = np.array([b for _, _, b in newer])
         try:
             e_new = float(np.mean((model.predict(Q) - T) ** 2))
-            e_old = float(np.mean((current.predict(Q) - T) ** 2))
-        except Exception as exc:          # noqa: BLE001 - the incumbent was swapped meanwhile
+        except Exception as exc:          # noqa: BLE001 - a broken candidate is caught later
             return True, f'held-out check skipped: {exc}'
-        noise = float(np.mean(np.var(T, axis=0))) * 1e-3
-        if e_new > self.HELD_OUT_FACTOR * e_old + noise:
+        # the incumbent learned each of these samples right after answering it: its answers
+        # from before are its held-out error (its error now would be its training error)
+        e_old = float(np.mean((before - T) ** 2))
+        # a candidate within 1 % of the samples' variance is good enough, however good the
+        # incumbent happens to be on them
+        floor = float(np.mean(np.var(T, axis=0))) * 1e-2
+        if e_new > self.HELD_OUT_FACTOR * e_old + floor:
             return False, (f'sanity check: error on the {len(newer)} samples that arrived '
                            f'during the fit {e_new / max(e_old, 1e-300):.1f} x the current '
                            f'model\'s')

@@ -11,7 +11,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-__all__ = ['Health', 'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
+__all__ = ['Health', 'GapCounter', 'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
 
 # Reasons a message can be rejected for (one counter each).
 REJECT_REASONS = ('empty', 'length_mismatch', 'bad_names', 'duplicate_name', 'missing_joint',
@@ -25,6 +25,58 @@ REJECT_WINDOW = 200
 REJECT_WARN_FRACTION = 0.1
 #: consecutive failed refits that make the status ERROR (one failure is a WARN)
 REFIT_FAIL_ERROR = 3
+#: missing messages (estimated from stamp gaps) above this fraction of the recent stream: WARN
+MISSING_WARN_FRACTION = 0.01
+
+
+class GapCounter:
+    """Messages missing from a regular stream, estimated from the gaps between their stamps.
+
+    A best-effort subscription drops what does not fit its queue without telling anyone (the
+    DDS "message lost" event does not fire for a full history), and a recorder can drop too. The
+    nominal period is the median of the recent stamp gaps (recomputed every 32 messages); a gap
+    longer than 1.5 periods counts the ``round(gap / period) - 1`` messages that should have
+    filled it. Longer silences (over ``max(1 s, 20 periods)``: the publisher paused, a bag loops)
+    and stamps that go back are not drops.
+    """
+
+    FACTOR = 1.5
+    WINDOW = 1000          # recent received messages the fraction is taken over
+
+    def __init__(self):
+        self.missing = 0
+        self._last: Optional[float] = None
+        self._gaps: deque = deque(maxlen=101)
+        self._period: Optional[float] = None
+        self._n = 0
+        self._recent: deque = deque(maxlen=self.WINDOW)     # missing before each message
+        self._recent_sum = 0
+
+    def note(self, stamp: float) -> None:
+        """One received message's stamp (s)."""
+        last, self._last = self._last, stamp
+        k = 0
+        if last is not None and stamp > last:
+            gap = stamp - last
+            p = self._period
+            if p is not None and self.FACTOR * p < gap <= max(1.0, 20.0 * p):
+                k = int(round(gap / p)) - 1
+            else:
+                self._gaps.append(gap)
+            self._n += 1
+            if len(self._gaps) >= 20 and (p is None or self._n % 32 == 0):
+                self._period = float(np.median(self._gaps))
+        self.missing += k
+        if len(self._recent) == self._recent.maxlen:
+            self._recent_sum -= self._recent[0]
+        self._recent.append(k)
+        self._recent_sum += k
+
+    @property
+    def recent_fraction(self) -> float:
+        """Missing / (missing + received) over the recent window."""
+        n = len(self._recent)
+        return self._recent_sum / (n + self._recent_sum) if n else 0.0
 
 
 @dataclass
@@ -57,6 +109,7 @@ class Health:
     refit_durations: List[float] = field(default_factory=list)
     recent_ok: deque = field(default_factory=lambda: deque(maxlen=REJECT_WINDOW))
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
+    gaps: GapCounter = field(default_factory=GapCounter)   # messages missing from the stream
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
@@ -95,6 +148,8 @@ class Health:
         lat = np.array(self.latencies) if self.latencies else None
         return dict(
             messages_received=self.messages_received, messages_accepted=self.messages_accepted,
+            messages_missing=self.gaps.missing,
+            recent_missing_fraction=round(self.gaps.recent_fraction, 6),
             samples_added=self.samples_added, samples_skipped=self.samples_skipped,
             samples_rate_limited=self.samples_rate_limited,
             samples_outliers=self.samples_outliers,
@@ -138,6 +193,11 @@ class Health:
         if self.recent_rejected_fraction > REJECT_WARN_FRACTION:
             reasons.append(f'many rejected samples ({100 * self.recent_rejected_fraction:.0f}% '
                            'of recent)')
+            level = max(level, WARN)
+        if self.gaps.recent_fraction > MISSING_WARN_FRACTION:
+            reasons.append(f'messages missing from the stream ({100 * self.gaps.recent_fraction:.1f}'
+                           '% of recent, from stamp gaps): the input queue (queue_depth) '
+                           'overflowed, or the publisher or network dropped them')
             level = max(level, WARN)
         if self.consecutive_refit_failures and 'sanity check' in self.last_refit_error:
             reasons.append(f'model rejected ({self.last_refit_error}); the previous one serves')

@@ -34,8 +34,10 @@ def feed(est, n, t0=0.0, dt=0.05, noise=0.02, seed=0):
 
 
 def cfg(**kw):
+    # the data here follow a smooth viscous law: the paper's prior (the defaults are for arms)
     base = dict(model='full', passivity='projected', buffer_size=40, min_samples=10,
-                refit_mode='sync', refit_period_s=0.0, selection='all')
+                refit_mode='sync', refit_period_s=0.0, selection='all', prior='viscous',
+                bias=False)
     base.update(kw)
     return EstimatorConfig(**base)
 
@@ -446,3 +448,41 @@ def test_a_wild_candidate_is_not_swapped_in_and_the_status_says_so():
     d = est.diagnostics()
     assert est.model is good and d['refits_rejected'] >= 1
     assert d['level'] >= WARN and 'model rejected' in d['message'] and 'sanity check' in d['message']
+
+
+class _WildOnce(FullDGP):
+    """The second candidate ever built extrapolates wildly; the others are sound."""
+
+    built = 0
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        _WildOnce.built += 1
+        self._wild = _WildOnce.built == 2
+
+    def predict(self, Qs, return_var=False):
+        out = super().predict(Qs, return_var)
+        if self._wild:
+            tau = out[0] if return_var else out
+            tau *= 1e4
+        return out
+
+
+def test_a_rejected_candidate_is_retried_on_fresh_samples_without_a_refit_period():
+    """refit_period_s = 0: without a retry the first model (10 samples) would serve for good."""
+    _WildOnce.built = 0
+    est = OnlineEstimator(cfg(buffer_size=40, min_samples=10, refit_period_s=0.0,
+                              optimize_every_n_refits=0),
+                          model_factory=lambda kind, **kw: _WildOnce(**kw))
+    feed(est, 10)
+    first = est.model
+    assert first is not None
+    feed(est, 10, t0=1.0, seed=1)                 # 20 buffered: hyper-parameters outgrown
+    d = est.diagnostics()
+    assert d['refits_rejected'] == 1 and est.model is first, d
+    feed(est, 9, t0=2.0, seed=2)                  # the retry waits for 10 fresh samples
+    assert est.model is first and _WildOnce.built == 2
+    feed(est, 1, t0=3.0, seed=3)
+    d = est.diagnostics()
+    assert _WildOnce.built == 3 and est.model is not first and d['refits_ok'] == 2, d
+    assert d['level'] == OK, d['message']
