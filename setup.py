@@ -34,8 +34,8 @@ setup(
             'sim_bridge = sim_bridge.node:main',
             'dgp-demo = dgp_ros.demo:main',
             'dgp-replay = dgp_ros.replay:main',
-            'dgp-record = dgp_ros.bagtools:record_main',
-            'dgp-play = dgp_ros.bagtools:play_main',
+            'dgp-record = dgp_ros.bags.cli:record_main',
+            'dgp-play = dgp_ros.bags.cli:play_main',
         ],
     },
 )

@@ -25,6 +25,11 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from dgp_ros.gp import KINDS, PASSIVITY_MODES
+from dgp_ros.gp.passivity import describe_modes
+
+from dgp_ros.messages import joint_state_sample
+
 OUT_NAMES = ['alpha', 'beta', 'airspeed']
 
 
@@ -58,10 +63,6 @@ def _stop(proc: Optional[subprocess.Popen], name: str, grace: float = 30.0) -> O
     return proc.poll()
 
 
-def _stamp(msg) -> float:
-    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-
-
 class _Recorder:
     """Subscribes to the measurements and every estimator output; keeps arrival wall times."""
 
@@ -87,14 +88,16 @@ class _Recorder:
         node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 100)
 
     def _on_meas(self, m):
-        self.meas[_stamp(m)] = (time.perf_counter(), list(m.name), np.array(m.velocity),
-                                np.array(m.effort))
+        s = joint_state_sample(m)
+        self.meas[s.stamp_s] = (time.perf_counter(), s.names, s.velocity, s.effort)
 
     def _on_est(self, m):
-        self.est[_stamp(m)] = (time.perf_counter(), np.array(m.velocity), np.array(m.effort))
+        s = joint_state_sample(m)
+        self.est[s.stamp_s] = (time.perf_counter(), s.velocity, s.effort)
 
     def _on_std(self, m):
-        self.std[_stamp(m)] = list(m.effort)
+        s = joint_state_sample(m)
+        self.std[s.stamp_s] = s.effort.tolist()
 
     def _on_D(self, m):
         self.n_matrix += 1
@@ -266,9 +269,9 @@ def main(argv=None) -> int:
                     help='simulated s per wall s (0 = as fast as possible)')
     ap.add_argument('--max-sim-time', type=float, default=0.0,
                     help='stop the approach after this many simulated s (0 = to touch-down)')
-    ap.add_argument('--model', default='full', choices=['full', 'diag', 'ard'])
-    ap.add_argument('--passivity', default='projected',
-                    choices=['none', 'paper', 'certified', 'projected'])
+    ap.add_argument('--model', default='full', choices=KINDS)
+    ap.add_argument('--passivity', default='projected', choices=PASSIVITY_MODES,
+                    help=describe_modes())
     ap.add_argument('--buffer-size', type=int, default=200)
     ap.add_argument('--refit-period', type=float, default=10.0, help='simulated s between refits')
     ap.add_argument('--synthetic', action='store_true',
@@ -295,6 +298,8 @@ def main(argv=None) -> int:
 
     est_cmd = [sys.executable, '-m', 'dgp_ros.estimator_node', '--ros-args',
                '-p', f'model:={args.model}', '-p', f'passivity:={args.passivity}',
+               # the aircraft: the paper's viscous prior, no offsets (defaults are for arms)
+               '-p', 'prior:=viscous', '-p', 'bias:=false',
                '-p', f'buffer_size:={args.buffer_size}',
                '-p', f'refit_period_s:={float(args.refit_period)}',
                '-p', 'diagnostics_period_s:=0.5']

@@ -1,70 +1,50 @@
 """``dgp_estimator``: the online D-GP estimator node (console script ``estimator``).
 
-A thin rclpy wrapper around :class:`dgp_ros.online.OnlineEstimator` (all numerics and policies
-live there, so that bag replay does exactly what the node does).
+A thin rclpy wrapper around :class:`dgp_ros.online.OnlineEstimator`: every decision is made
+there, so that bag replay does exactly what the node does. ``estimator --help`` lists the
+parameters (``dgp_ros.online.config``).
 
-Interface (DESIGN.md, "ROS interface"):
+Subscribes ``generalized_state`` (sensor_msgs/JointState, best effort, depth ``queue_depth``) and
+publishes, for every accepted measurement, stamped like it:
 
-- subscribes ``generalized_state`` (sensor_msgs/JointState; best-effort subscription, so both
-  best-effort and reliable publishers match)
-- publishes, from the same callback, for every accepted measurement:
-  ``~/damping_force`` (JointState: the measurement's header.stamp and names, velocity = qd,
-  effort = tau_hat), ``~/damping_force_stddev`` (JointState, effort = posterior stddev),
-  ``~/damping_matrix`` (Float64MultiArray, N x N row-major, layout dims rows/cols; not for
-  model=ard), ``~/dissipated_power`` (Float64, qd^T tau_hat)
-- ``/diagnostics`` (DiagnosticArray) every ``diagnostics_period_s`` (node clock)
-- services ``~/refit``, ``~/reset``, ``~/save_model`` (std_srvs/Trigger)
+- ``~/damping_force`` (JointState: names, velocity = qd, effort = tau_hat) and
+  ``~/damping_force_stddev`` (effort = posterior standard deviation);
+- ``~/damping_matrix_stamped`` (JointState: the measurement's stamp and joint names, velocity =
+  qd, effort = D(qd) row-major, N * N entries) and ``~/damping_matrix`` (Float64MultiArray, the
+  same N x N row-major, for consumers of the unstamped array); not for model=ard;
+- ``~/dissipated_power`` (Float64, qd^T tau_hat);
+- ``~/friction_residual`` (JointState, with inverse_dynamics): what is learned, each sample
+  stamped with its own (earlier) time: position, velocity, effort = effort - tau_rb;
+- ``~/bias`` (JointState, with bias=true once trained): the learned per-joint bias.
 
-Parameters: the fields of :class:`EstimatorConfig` (same names and defaults as
-``config/estimator.yaml``) plus ``diagnostics_period_s``. Validated at start (invalid -> the node
-exits with status 2 and says why) and on every change (a rejected change says why in
-SetParametersResult.reason). ``use_sim_time`` is the standard rclpy parameter.
+``/diagnostics`` every ``diagnostics_period_s``; services ``~/refit``, ``~/reset``,
+``~/save_model`` (std_srvs/Trigger). SIGINT/SIGTERM: the model is saved (``model_path``) and the
+process exits 0 (``node_runtime``).
 """
 from __future__ import annotations
 
 import dataclasses
 import sys
+from collections import deque
 from typing import List
 
-import rclpy
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
+from dgp_ros.messages import joint_state_sample
+from dgp_ros.node_runtime import (check_unknown_overrides, declare_parameters, help_text,
+                                  reject_unknown, run)
 from dgp_ros.online import ERROR, OK, WARN, EstimatorConfig, OnlineEstimator
+from dgp_ros.online.config import NODE_PARAMS, PARAMS
 
 NODE_NAME = 'dgp_estimator'
-
-_DESCRIPTIONS = {
-    'model': 'full | diag | ard',
-    'passivity': 'none | paper | certified | projected',
-    'buffer_size': 'samples kept in the GP (window)',
-    'min_samples': 'prior-mean estimate until this many samples are buffered',
-    'refit_period_s': 'message-stamp seconds between refits (0 = only first fit and on request)',
-    'optimize_every_n_refits': 'hyper-parameters re-optimized every n-th refit (0 = first only)',
-    'selection': 'all | novelty (skip near-duplicate samples)',
-    'selection_min_distance': 'novelty threshold in standardized units',
-    'selection_scale': 'per-joint scale for novelty ([] = buffer std)',
-    'min_sample_interval_s': 'learn at most one sample per this much stamp time (0 = every '
-                             'sample); every message still gets an estimate',
-    'joints': 'joint names to select and order ([] = message order)',
-    'model_path': 'npz model: loaded at start, saved on refit, shutdown and ~/save_model',
-    'refit_mode': 'async (background thread) | sync (in the callback; tests only)',
-    'max_abs_velocity': '|velocity| above this is rejected',
-    'max_abs_effort': '|effort| above this is rejected',
-    'operating_domain': "certified: declared operating box [lo_1..lo_N, hi_1..hi_N] in the "
-                        "joints' units, proven with the data box ([] = data box only)",
-}
-
-_ARRAY_TYPES = {'joints': Parameter.Type.STRING_ARRAY,
-                'selection_scale': Parameter.Type.DOUBLE_ARRAY,
-                'operating_domain': Parameter.Type.DOUBLE_ARRAY}
+_CONFIG_FIELDS = {f.name for f in dataclasses.fields(EstimatorConfig)}
 
 
 def damping_matrix_msg(D) -> Float64MultiArray:
@@ -74,30 +54,28 @@ def damping_matrix_msg(D) -> Float64MultiArray:
     msg.layout.dim = [MultiArrayDimension(label='rows', size=n_rows, stride=n_rows * n_cols),
                       MultiArrayDimension(label='cols', size=n_cols, stride=n_cols)]
     msg.layout.data_offset = 0
-    msg.data = [float(x) for x in D.ravel()]
+    msg.data = D.ravel().tolist()
     return msg
+
+
+def _joint_state(header, names, position=(), velocity=(), effort=()) -> JointState:
+    m = JointState()
+    m.header = header
+    m.name = names
+    m.position = list(position)
+    m.velocity = list(velocity)
+    m.effort = list(effort)
+    return m
 
 
 class EstimatorNode(Node):
     """Node ``dgp_estimator``; see the module docstring."""
 
     def __init__(self, **kwargs):
-        super().__init__(NODE_NAME, **kwargs)
-        defaults = EstimatorConfig()
-        for f in dataclasses.fields(EstimatorConfig):
-            desc = ParameterDescriptor(description=_DESCRIPTIONS.get(f.name, ''))
-            if f.name in _ARRAY_TYPES:
-                p = self.declare_parameter(f.name, _ARRAY_TYPES[f.name], desc)
-                if p.type_ == Parameter.Type.NOT_SET:
-                    self.set_parameters([Parameter(f.name, _ARRAY_TYPES[f.name], [])])
-            else:
-                self.declare_parameter(f.name, getattr(defaults, f.name), desc)
-        self.declare_parameter('diagnostics_period_s', 1.0, ParameterDescriptor(
-            description='period of /diagnostics (node clock)'))
-
-        config = self._config_from({})          # raises ValueError (main exits with the reason)
-        if not self.get_parameter('diagnostics_period_s').value > 0:
-            raise ValueError('diagnostics_period_s must be > 0')
+        super().__init__(NODE_NAME, allow_undeclared_parameters=True, **kwargs)
+        declare_parameters(self, list(PARAMS.values()) + list(NODE_PARAMS.values()))
+        check_unknown_overrides(self)
+        config = self._config_from({})          # ValueError: main exits 2 with the reason
         self.estimator = OnlineEstimator(config)
         if self.estimator.load_error:
             self.get_logger().warning(self.estimator.load_error)
@@ -106,13 +84,17 @@ class EstimatorNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._post_set_parameters)
 
-        qos_in = QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST,
+        depth = int(self.get_parameter('queue_depth').value)
+        qos_in = QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
                             reliability=ReliabilityPolicy.BEST_EFFORT)
         self.sub = self.create_subscription(JointState, 'generalized_state', self._on_state, qos_in)
         self.pub_force = self.create_publisher(JointState, '~/damping_force', 10)
         self.pub_std = self.create_publisher(JointState, '~/damping_force_stddev', 10)
         self.pub_D = self.create_publisher(Float64MultiArray, '~/damping_matrix', 10)
+        self.pub_D_stamped = self.create_publisher(JointState, '~/damping_matrix_stamped', 10)
         self.pub_power = self.create_publisher(Float64, '~/dissipated_power', 10)
+        self.pub_residual = self.create_publisher(JointState, '~/friction_residual', 100)
+        self.pub_bias = self.create_publisher(JointState, '~/bias', 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_service(Trigger, '~/refit', self._srv_refit)
         self.create_service(Trigger, '~/reset', self._srv_reset)
@@ -120,83 +102,93 @@ class EstimatorNode(Node):
         self._diag_timer = self.create_timer(
             float(self.get_parameter('diagnostics_period_s').value), self._publish_diagnostics)
         self._last_msg_time = None
+        self._age = deque(maxlen=1000)        # stamp -> answer, node clock (s)
         self.get_logger().info(
             f'{NODE_NAME}: model={config.model} passivity={config.passivity} '
-            f'buffer={config.buffer_size} selection={config.selection} '
+            f'prior={config.prior} buffer={config.buffer_size} queue_depth={depth} '
+            f'inverse_dynamics={config.inverse_dynamics or "none"} '
             f'joints={config.joints or "(message order)"}')
 
     # ---------------------------------------------------------- parameters
     def _config_from(self, overrides: dict) -> EstimatorConfig:
         values = {}
-        for f in dataclasses.fields(EstimatorConfig):
-            v = overrides[f.name] if f.name in overrides else self.get_parameter(f.name).value
-            if v is None and f.name in _ARRAY_TYPES:
+        for name in _CONFIG_FIELDS:
+            v = overrides[name] if name in overrides else self.get_parameter(name).value
+            if v is None and PARAMS[name].type.endswith('[]'):
                 v = []
             if isinstance(v, (list, tuple)) or type(v).__name__ == 'array':
                 v = list(v)
-            values[f.name] = v
+            values[name] = v
         return EstimatorConfig.from_dict(values).validate()
 
-    def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
-        overrides = {}
-        for p in params:
-            if p.name == 'diagnostics_period_s':
-                if not (isinstance(p.value, (int, float)) and p.value > 0):
-                    return SetParametersResult(successful=False,
-                                               reason='diagnostics_period_s must be > 0')
-            elif p.name in {f.name for f in dataclasses.fields(EstimatorConfig)}:
-                overrides[p.name] = [] if (p.value is None and p.name in _ARRAY_TYPES) else p.value
-        if not overrides:
+    def _on_set_parameters(self, params: List) -> SetParametersResult:
+        bad = reject_unknown(self, params)
+        if bad is not None:
+            return bad
+        overrides = {p.name: p.value for p in params if p.name in _CONFIG_FIELDS}
+        if not overrides or not hasattr(self, 'estimator'):
             return SetParametersResult(successful=True)
         try:
-            self._config_from(overrides)
+            cfg = self._config_from(overrides)
+            if self.estimator.names:
+                cfg.check_dimension(len(self.estimator.names))
+            self.estimator.check_reconfigure(cfg)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
-    def _post_set_parameters(self, params: List[Parameter]) -> None:
+    def _post_set_parameters(self, params: List) -> None:
         names = {p.name for p in params}
         if not hasattr(self, 'estimator'):
             return
         if 'diagnostics_period_s' in names:
-            self._diag_timer.cancel()
             self.destroy_timer(self._diag_timer)
             self._diag_timer = self.create_timer(
                 float(self.get_parameter('diagnostics_period_s').value), self._publish_diagnostics)
-        if names - {'diagnostics_period_s', 'use_sim_time'}:
+        if 'queue_depth' in names:
+            self.get_logger().warning('queue_depth applies at the next start')
+        if names & _CONFIG_FIELDS:
             what = self.estimator.reconfigure(self._config_from({}))
             self.get_logger().info(f'parameters {sorted(names)}: {what}')
 
     # -------------------------------------------------------------- topics
     def _on_state(self, msg: JointState) -> None:
-        self._last_msg_time = self.get_clock().now()
-        stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-        est = self.estimator.process(stamp, msg.name, msg.velocity, msg.effort)
+        now = self.get_clock().now()
+        self._last_msg_time = now
+        s = joint_state_sample(msg)
+        est = self.estimator.process(s.stamp_s, s.names, s.velocity, s.effort, s.position)
         if est is None:
             return
         names = list(est.names) if est.names else list(msg.name)
-        out = JointState()
-        out.header.stamp = msg.header.stamp
-        out.header.frame_id = msg.header.frame_id
-        out.name = names
-        out.velocity = est.qd.tolist()
-        out.effort = est.tau_hat.tolist()
-        self.pub_force.publish(out)
-        sd = JointState()
-        sd.header = out.header
-        sd.name = names
-        sd.velocity = est.qd.tolist()
-        sd.effort = est.stddev.tolist()
-        self.pub_std.publish(sd)
+        hdr = msg.header
+        self.pub_force.publish(_joint_state(hdr, names, (), est.qd.tolist(), est.tau_hat.tolist()))
+        self.pub_std.publish(_joint_state(hdr, names, (), est.qd.tolist(), est.stddev.tolist()))
         if est.D is not None:
+            self.pub_D_stamped.publish(_joint_state(hdr, names, (), est.qd.tolist(),
+                                                    est.D.ravel().tolist()))
             self.pub_D.publish(damping_matrix_msg(est.D))
         self.pub_power.publish(Float64(data=float(est.power)))
+        for r in est.residuals:
+            h = type(hdr)()
+            h.frame_id = hdr.frame_id
+            h.stamp.sec = int(r.stamp_s // 1)
+            h.stamp.nanosec = min(int(round((r.stamp_s % 1) * 1e9)), 999_999_999)
+            self.pub_residual.publish(_joint_state(h, names, r.q.tolist(), r.qd.tolist(),
+                                                   r.residual.tolist()))
+        self._age.append((now.nanoseconds - (hdr.stamp.sec * 10 ** 9 + hdr.stamp.nanosec)) * 1e-9)
 
     def diagnostic_status(self) -> DiagnosticStatus:
         d = self.estimator.diagnostics()
         if self._last_msg_time is None:
             d['message'] = 'no measurements received yet; ' + d['message']
             d['level'] = max(d['level'], WARN)
+        if self._age:
+            a = np.array(self._age)
+            d['stamp_to_answer_median_s'] = float(np.median(a))
+            d['stamp_to_answer_p99_s'] = float(np.percentile(a, 99))
+        model = self.estimator.model
+        if model is not None and self.estimator.config.bias:
+            d['bias'] = [round(float(b), 6) for b in model.bias_]
         st = DiagnosticStatus()
         st.level = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN,
                     ERROR: DiagnosticStatus.ERROR}[d['level']]
@@ -219,6 +211,10 @@ class EstimatorNode(Node):
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [self.diagnostic_status()]
         self.pub_diag.publish(arr)
+        model = self.estimator.model
+        if model is not None and self.estimator.config.bias and self.estimator.names:
+            self.pub_bias.publish(_joint_state(arr.header, self.estimator.names, (), (),
+                                               model.bias_.tolist()))
 
     # ------------------------------------------------------------ services
     def _srv_refit(self, request, response):
@@ -239,35 +235,26 @@ class EstimatorNode(Node):
         return response
 
     def shutdown(self) -> None:
-        """Save the current model if model_path is set. A refit still running is not waited
-        for beyond a moment (its thread is a daemon; the current model is the one saved)."""
-        self.estimator.close(timeout=2.0)
-        if self.estimator.config.model_path and self.estimator.trained:
-            try:
+        """Save the current model if ``model_path`` is set (a refit still running is waited for
+        at most 2 s; the current model is the one saved). Never raises."""
+        try:
+            self.estimator.close(timeout=2.0)
+            if self.estimator.config.model_path and self.estimator.trained:
                 path = self.estimator.save()
                 self.get_logger().info(f'model saved to {path}')
-            except Exception as exc:  # shutdown must not raise
-                self.get_logger().error(f'could not save model: {exc}')
+        except Exception as exc:  # noqa: BLE001 - shutdown must not raise
+            self.get_logger().error(f'could not save model: {exc}')
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = EstimatorNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:                    # invalid parameters at start
-        print(f'[{NODE_NAME}] invalid parameters: {exc}', file=sys.stderr)
-        code = 2
-    finally:
-        if node is not None:
-            node.shutdown()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+HELP = help_text(
+    'estimator', 'The online D-GP estimator node (dgp_estimator): learns the damping force '
+    'tau_d(qd) = D(qd) qd from sensor_msgs/JointState on generalized_state and publishes passive '
+    'estimates (see the README).', list(PARAMS.values()) + list(NODE_PARAMS.values()),
+    remaps='remap the input: --ros-args -r generalized_state:=/joint_states')
+
+
+def main(args=None) -> int:
+    return run('estimator', lambda ctx: EstimatorNode(context=ctx), HELP, args)
 
 
 if __name__ == '__main__':

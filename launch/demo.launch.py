@@ -33,5 +33,6 @@ def generate_launch_description():
              parameters=[est_yaml, {
                  'model': LaunchConfiguration('model'),
                  'passivity': LaunchConfiguration('passivity'),
+                 'prior': 'viscous', 'bias': False,      # the aircraft (defaults are for arms)
                  'use_sim_time': ParameterValue(use_sim_time, value_type=bool)}]),
     ])

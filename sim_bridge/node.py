@@ -10,30 +10,40 @@ approach (``loop``), except ``real_time_factor`` which applies at once.
 import math
 import sys
 
-import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import WrenchStamped
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
+from dgp_ros.node_runtime import (check_unknown_overrides, declare_parameters, help_text,
+                                  reject_unknown, run)
+from dgp_ros.params import ParamSpec
+
 from .config import DEFAULT_WIND_AMPLITUDE, DEFAULT_WIND_FREQUENCY, DEFAULT_WIND_PHASE, SimConfig
 from .simulator import ApproachSimulator
 
-PARAMETERS = {
-    'rate_hz': (60.0, 'publish rate in simulated time (Hz)'),
-    'real_time_factor': (1.0, 'simulated s per wall s; 0 = as fast as possible'),
-    'wind_amplitude': (list(DEFAULT_WIND_AMPLITUDE), 'wind amplitude north, east, down (m/s, |A| <= 25)'),
-    'wind_frequency': (list(DEFAULT_WIND_FREQUENCY), 'wind frequency north, east, down (Hz)'),
-    'wind_phase': (list(DEFAULT_WIND_PHASE), 'wind phase north, east, down (rad)'),
-    'coordinates': ('angle', "'angle' (alpha, beta, airspeed) or 'body' (u, v, w)"),
-    'loop': (True, 'restart the approach after touch-down; false = shut down'),
-    'aircraft': ('A320', 'JSBSim aircraft model name'),
-    'publish_clock': (False, 'publish simulation time on /clock'),
-    'max_sim_time_s': (0.0, 'stop after this much simulated time (s); 0 = unlimited'),
-}
+SPECS = [
+    ParamSpec('rate_hz', 'float', 60.0, 'publish rate in simulated time (Hz)', low=1.0,
+              high=1000.0),
+    ParamSpec('real_time_factor', 'float', 1.0, 'simulated s per wall s; 0 = as fast as '
+              'possible', low=0.0, high=1000.0),
+    ParamSpec('wind_amplitude', 'float[]', list(DEFAULT_WIND_AMPLITUDE),
+              'wind amplitude north, east, down (m/s, |A| <= 25)', max_len=3),
+    ParamSpec('wind_frequency', 'float[]', list(DEFAULT_WIND_FREQUENCY),
+              'wind frequency north, east, down (Hz)', max_len=3),
+    ParamSpec('wind_phase', 'float[]', list(DEFAULT_WIND_PHASE),
+              'wind phase north, east, down (rad)', max_len=3),
+    ParamSpec('coordinates', 'str', 'angle', "'angle' (alpha, beta, airspeed) or 'body' "
+              '(u, v, w)', choices=('angle', 'body')),
+    ParamSpec('loop', 'bool', True, 'restart the approach after touch-down; false = shut down'),
+    ParamSpec('aircraft', 'str', 'A320', 'JSBSim aircraft model name'),
+    ParamSpec('publish_clock', 'bool', False, 'publish simulation time on /clock (start-up only)'),
+    ParamSpec('max_sim_time_s', 'float', 0.0, 'stop after this much simulated time (s); '
+              '0 = unlimited', low=0.0, high=1e9),
+]
+PARAMETERS = {p.name: p for p in SPECS}
 CONFIG_KEYS = ('rate_hz', 'wind_amplitude', 'wind_frequency', 'wind_phase', 'coordinates', 'aircraft')
 
 
@@ -57,9 +67,9 @@ class SimBridgeNode(Node):
     """Steps ApproachSimulator on a timer and publishes each sample."""
 
     def __init__(self, **kwargs):
-        super().__init__('sim_bridge', **kwargs)
-        for name, (default, doc) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=doc))
+        super().__init__('sim_bridge', allow_undeclared_parameters=True, **kwargs)
+        declare_parameters(self, SPECS)
+        check_unknown_overrides(self)
         self.cfg = check_values(self._values())        # raises ValueError on bad start values
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -86,10 +96,10 @@ class SimBridgeNode(Node):
         return values
 
     def _on_set_parameters(self, params):
+        bad = reject_unknown(self, params)
+        if bad is not None:
+            return bad
         try:
-            unknown = [p.name for p in params if p.name not in PARAMETERS]
-            if unknown:
-                raise ValueError(f'unknown parameter(s) {unknown}')
             for p in params:
                 if p.name == 'publish_clock' and p.value != self.get_parameter('publish_clock').value:
                     raise ValueError('publish_clock can only be set at start-up')
@@ -153,24 +163,13 @@ class SimBridgeNode(Node):
         self.published += 1
 
 
+HELP = help_text('sim_bridge', 'JSBSim A320 approach in periodic wind, published as generalized '
+                 'velocities [alpha, beta, airspeed] and aerodynamic forces (see the README).',
+                 SPECS)
+
+
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = SimBridgeNode()
-        while rclpy.ok() and not node.done:
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except ValueError as exc:
-        print(f'[sim_bridge] error: invalid parameter: {exc}', file=sys.stderr)
-        code = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run('sim_bridge', lambda ctx: SimBridgeNode(context=ctx), HELP, args)
 
 
 if __name__ == '__main__':

@@ -28,11 +28,11 @@ PARAMS = {p.name: p for p in (
     ParamSpec('model', 'str', 'full', 'damping model: Full-D-GP, Diag-D-GP or the ARD-GP baseline',
               choices=KINDS),
     ParamSpec('passivity', 'str', 'projected', describe_modes(), choices=PASSIVITY_MODES),
-    ParamSpec('prior', 'str', 'viscous', 'prior mean of the damping: constant viscous diagonal, '
-              'Coulomb + viscous, or Coulomb + viscous + Stribeck (passive by construction)',
-              choices=PRIORS),
-    ParamSpec('bias', 'bool', False, 'learn a per-joint constant bias with the prior (reported '
-              'apart from the damping force)'),
+    ParamSpec('prior', 'str', 'friction+stribeck', 'prior mean of the damping: constant viscous '
+              'diagonal (the paper, an aircraft), Coulomb + viscous, or Coulomb + viscous + '
+              'Stribeck (joint friction; passive by construction)', choices=PRIORS),
+    ParamSpec('bias', 'bool', True, 'learn a per-joint constant bias with the prior (sensor '
+              'offsets, model error; reported apart from the damping force)'),
     ParamSpec('buffer_size', 'int', 200, 'samples kept in the GP (its window)', low=2, high=5000),
     ParamSpec('min_samples', 'int', 20, 'prior-mean estimate until this many samples are '
               'buffered', low=1, high=5000),

@@ -20,7 +20,7 @@ from dgp_ros.online import EstimatorConfig  # noqa: E402
 
 pytestmark = pytest.mark.ros
 NAMES = ['alpha', 'beta', 'airspeed']
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def true_tau(q):
@@ -45,7 +45,8 @@ def state_msg(t, q, tau, names=NAMES):
 
 FAST = [Parameter('buffer_size', value=40), Parameter('min_samples', value=10),
         Parameter('refit_period_s', value=0.0), Parameter('selection', value='all'),
-        Parameter('diagnostics_period_s', value=0.2)]
+        Parameter('diagnostics_period_s', value=0.2),
+        Parameter('prior', value='viscous'), Parameter('bias', value=False)]   # a viscous law
 
 
 class Rig:
@@ -266,18 +267,19 @@ def test_save_and_restart_gives_identical_estimates(rig, tmp_path):
     # and the restarted node answers at once with the model, not the prior
     rig.got['force'].clear()
     feed(rig, 1, t0=50.0)
-    assert rig.got['force'] and est2.estimator._last_est.source == 'model'
+    assert rig.got['force'] and est2.estimator.diagnostics()['last_source'] == 'model'
 
 
 def test_yaml_defaults_match_config():
+    """config/estimator.yaml is generated from the parameter table, and parses to its defaults."""
+    from dgp_ros.online.config import NODE_PARAMS, defaults_yaml
     yaml = pytest.importorskip('yaml')
     with open(os.path.join(REPO, 'config', 'estimator.yaml')) as f:
-        params = yaml.safe_load(f)['dgp_estimator']['ros__parameters']
-    defaults = dataclasses.asdict(EstimatorConfig())
+        text = f.read()
+    assert text == defaults_yaml(), 'regenerate config/estimator.yaml (see its header)'
+    params = yaml.safe_load(text)['dgp_estimator']['ros__parameters']
+    defaults = dict(dataclasses.asdict(EstimatorConfig()),
+                    **{k: p.default for k, p in NODE_PARAMS.items()})
     for k, v in params.items():
-        if k == 'diagnostics_period_s':
-            continue
-        assert k in defaults, k
         assert v == defaults[k], (k, v, defaults[k])
-    missing = set(defaults) - set(params) - {'joints', 'selection_scale', 'operating_domain'}
-    assert not missing
+    assert set(defaults) - set(params) == {'joints', 'selection_scale', 'operating_domain'}

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sim_bridge import ApproachSimulator, FrozenAero, SimConfig, simulate_approach
-from sim_bridge.simulator import LBF_TO_N, _new_exec, trim_approach
+from sim_bridge.simulator import LBF_TO_N
 
 
 @pytest.fixture(scope='session')
@@ -24,9 +24,10 @@ def approach_body():
 
 def test_trim_succeeds_on_glide_path_in_landing_configuration():
     cfg = SimConfig()
-    fdm = _new_exec(cfg)
-    speed = trim_approach(fdm, cfg)
-    assert speed == cfg.approach_speed_kts
+    sim = ApproachSimulator(cfg)
+    sim.reset()                                    # loads the aircraft and trims it
+    fdm = sim.fdm
+    assert sim.trim_speed_kts == cfg.approach_speed_kts
     assert fdm['fcs/flap-pos-deg'] == pytest.approx(40.0)
     assert fdm['gear/gear-pos-norm'] == pytest.approx(1.0)
     assert math.degrees(fdm['flight-path/gamma-rad']) == pytest.approx(-3.0, abs=0.05)
@@ -40,11 +41,10 @@ def test_trim_succeeds_on_glide_path_in_landing_configuration():
 
 def test_trim_fails_cleanly_far_below_the_full_flap_speed():
     from sim_bridge import TrimError
-    cfg = SimConfig(approach_speed_kts=100.0)
-    fdm = _new_exec(cfg)
+    sim = ApproachSimulator(SimConfig(approach_speed_kts=100.0))
     with pytest.raises(TrimError):
         # 100..135 kt: the model runs out of nose-up elevator; all fallbacks fail too
-        trim_approach(fdm, cfg)
+        sim.reset()
 
 
 def test_approach_reaches_touchdown_inside_envelope(approach):
