@@ -165,6 +165,10 @@ class FrictionMean(PriorMean):
     name = 'friction'
     _EPS_GRID = (0.003, 0.01, 0.03, 0.1)      # x RMS velocity of the joint
     _VS_GRID = (0.03, 0.1, 0.3)
+    #: fraction of the samples each direction of motion needs before a joint's bias is learned
+    BOTH_WAYS_FRACTION = 0.05
+    #: fraction of the samples below the Stribeck velocity before a Stribeck term is fitted
+    STRIBECK_EVIDENCE = 0.05
 
     def __init__(self, stribeck: bool = False, bias: bool = False):
         super().__init__(bias)
@@ -189,12 +193,23 @@ class FrictionMean(PriorMean):
         self.bias = np.zeros(N)
         vs_grid = self._VS_GRID if self.stribeck else (1.0,)
         for j in range(N):
+            # a bias is told apart from Coulomb friction only by motion in both directions
+            # (one way, tanh(v / eps) is a constant too): until then the joint gets none
+            v = Qd[:, j]
+            bias = self.bias_enabled and n > 0 and \
+                min(np.mean(v > 0), np.mean(v < 0)) >= self.BOTH_WAYS_FRACTION
+            # Coulomb and Stribeck forces bounded by the largest measured force: a Stribeck
+            # term fitted where the joint never moved slowly explodes towards qd = 0 (128 N m
+            # against data of 1 N m, seen), so it also needs samples in its regime (|v| < v_s)
+            fmax = float(np.max(np.abs(Tau[:, j]))) if n else 0.0
             best = None
             for fe in self._EPS_GRID:
                 for fv in vs_grid:
                     eps, vs = fe * rms[j], fv * rms[j]
-                    A = self._basis(Qd[:, j], eps, vs)
-                    c, b, res = _nnls_one(A, Tau[:, j], self.bias_enabled)
+                    A = self._basis(v, eps, vs)
+                    if self.stribeck and np.mean(np.abs(v) < vs) < self.STRIBECK_EVIDENCE:
+                        A = A[:, :2]
+                    c, b, res = _nnls_one(A, Tau[:, j], bias, np.r_[np.inf, fmax, fmax][:A.shape[1]])
                     if best is None or res < best[0] - 1e-12 * abs(best[0]):
                         best = (res, c, b, eps, vs)
             _, c, b, self.eps[j], self.v_s[j] = best
@@ -265,8 +280,8 @@ class ConstantMean(PriorMean):
         return m
 
 
-def _nnls_one(A: np.ndarray, y: np.ndarray, bias: bool):
-    """min |A c + b - y|^2 (+ 0.01 n b^2) with c >= 0 (and b free if ``bias``).
+def _nnls_one(A: np.ndarray, y: np.ndarray, bias: bool, ub: Optional[np.ndarray] = None):
+    """min |A c + b - y|^2 (+ 0.01 n b^2) with 0 <= c (<= ub) (and b free if ``bias``).
 
     Returns (c, b, residual^2). The weak ridge on ``b`` only matters where the data cannot tell
     a bias from Coulomb friction (a joint that moved one way only: ``tanh(v / eps)`` is then
@@ -284,8 +299,9 @@ def _nnls_one(A: np.ndarray, y: np.ndarray, bias: bool):
         A = np.vstack([A, ridge])
         yy = np.r_[y, 0.0]
     lb = np.r_[np.zeros(k), [-np.inf] if bias else []]
-    r = lsq_linear(A, yy, bounds=(lb, np.full(lb.size, np.inf)), method='bvls')
-    c = np.maximum(r.x[:k], 0.0)
+    hi = np.full(k, np.inf) if ub is None else np.maximum(np.asarray(ub, float), 1e-300)
+    r = lsq_linear(A, yy, bounds=(lb, np.r_[hi, [np.inf] if bias else []]), method='bvls')
+    c = np.clip(r.x[:k], 0.0, hi)
     b = float(r.x[k]) if bias else 0.0
     res = float(np.sum((A[:n, :k] @ c + b - y) ** 2))
     return c, b, res

@@ -26,9 +26,9 @@ def _data(n=40, N=2, seed=0):
 
 def _hp(kind, N, rng):
     E = N * N if kind == 'full' else N
-    return dict(log_sf2=np.log(rng.uniform(0.2, 2.0, E)), log_ls=np.log(rng.uniform(0.5, 2, (E, N))),
-                log_sn2=np.log(rng.uniform(0.01, 0.1, N)), sx=np.ones(N), sy=np.ones(N),
-                mean=rng.uniform(0.5, 2.0, N))
+    return {'log_sf2': np.log(rng.uniform(0.2, 2.0, E)), 'log_ls': np.log(rng.uniform(0.5, 2, (E, N))),
+            'log_sn2': np.log(rng.uniform(0.01, 0.1, N)), 'sx': np.ones(N), 'sy': np.ones(N),
+            'mean': rng.uniform(0.5, 2.0, N)}
 
 
 def _dense_reference(kind, hp, X, Y, Xs):
@@ -376,3 +376,30 @@ def test_get_and_set_params_round_trip_without_refit():
         m.set_params(windw=3)
     clone = FullDGP(**m.get_params())
     assert clone.get_params() == m.get_params()
+
+
+def test_friction_prior_stays_bounded_without_slow_samples():
+    """A joint seen only at |v| in [0.24, 0.5] one way (the start of a trajectory): the Stribeck
+    term must not explode towards qd = 0, and no bias is learned (it cannot be told apart from
+    Coulomb friction); found by bench/hostile.py (128 N m towards qd = 0 from 1 N m of data)."""
+    from dgp_ros.gp.means import make_mean
+    rng = np.random.default_rng(0)
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        v = rng.uniform(0.24, 0.5, (60, 1)) * rng.choice([-1.0, 1.0])
+        tau = 0.5 * v + 0.3 * np.sign(v) + 0.2 * np.sin(9 * v) + rng.normal(0, 0.02, v.shape)
+        m = make_mean('friction+stribeck', 'full', bias=True).fit(v, tau)
+        assert m.bias[0] == 0.0
+        grid = np.linspace(-1.0, 1.0, 2001)[:, None]
+        f = m.force(grid)
+        assert np.all(np.abs(f) <= 2.0 * np.abs(tau).max() + 0.5 * np.abs(grid)), seed
+        assert np.all(f * grid >= 0)
+
+
+def test_friction_prior_learns_a_bias_once_both_directions_are_seen():
+    from dgp_ros.gp.means import make_mean
+    rng = np.random.default_rng(1)
+    v = rng.uniform(-1, 1, (300, 2))
+    tau = 0.8 * v + 0.4 * np.tanh(v / 0.02) + np.array([-0.2, 0.3]) + rng.normal(0, 0.02, v.shape)
+    m = make_mean('friction+stribeck', 'full', bias=True).fit(v, tau)
+    np.testing.assert_allclose(m.bias, [-0.2, 0.3], atol=0.03)
