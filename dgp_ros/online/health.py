@@ -34,9 +34,10 @@ class GapCounter:
 
     A best-effort subscription drops what does not fit its queue without telling anyone (the
     DDS "message lost" event does not fire for a full history), and a recorder can drop too. The
-    nominal period is the median of the recent stamp gaps (recomputed every 32 messages); a gap
-    longer than 1.5 periods counts the ``round(gap / period) - 1`` messages that should have
-    filled it. Longer silences (over ``max(1 s, 20 periods)``: the publisher paused, a bag loops)
+    nominal period is the median of the last 101 stamp gaps (recomputed every 32 messages, so a
+    new publishing rate is learned within about 100 messages and drops up to half of the stream
+    do not move it); a gap longer than 1.5 periods counts the ``round(gap / period) - 1``
+    messages that should have filled it. Longer silences (over ``max(1 s, 20 periods)``: the publisher paused, a bag loops)
     and stamps that go back are not drops.
     """
 
@@ -61,8 +62,7 @@ class GapCounter:
             p = self._period
             if p is not None and self.FACTOR * p < gap <= max(1.0, 20.0 * p):
                 k = int(round(gap / p)) - 1
-            else:
-                self._gaps.append(gap)
+            self._gaps.append(gap)        # all of them: a new publishing rate is learned
             self._n += 1
             if len(self._gaps) >= 20 and (p is None or self._n % 32 == 0):
                 self._period = float(np.median(self._gaps))
@@ -146,30 +146,30 @@ class Health:
 
     def counters(self) -> dict:
         lat = np.array(self.latencies) if self.latencies else None
-        return dict(
-            messages_received=self.messages_received, messages_accepted=self.messages_accepted,
-            messages_missing=self.gaps.missing,
-            recent_missing_fraction=round(self.gaps.recent_fraction, 6),
-            samples_added=self.samples_added, samples_skipped=self.samples_skipped,
-            samples_rate_limited=self.samples_rate_limited,
-            samples_outliers=self.samples_outliers,
-            rejected=dict(self.rejected), rejected_total=self.rejected_total,
-            recent_rejected_fraction=self.recent_rejected_fraction,
-            refits_started=self.refits_started, refits_ok=self.refits_ok,
-            refits_failed=self.refits_failed, refits_rejected=self.refits_rejected,
-            last_refit_error=self.last_refit_error,
-            last_refit_stamp=self.last_refit_stamp,
-            last_refit_wall_time=self.last_refit_wall_time,
-            last_refit_duration_s=self.last_refit_duration_s,
-            last_refit_optimized=self.last_refit_optimized,
-            passivity_fallbacks=self.passivity_fallbacks,
-            nonfinite_outputs=self.nonfinite_outputs,
-            inverse_dynamics_errors=self.inverse_dynamics_errors,
-            time_jumps_back=self.time_jumps_back, time_jumps_forward=self.time_jumps_forward,
-            recertifications=self.recertifications,
-            latency_median_s=float(np.median(lat)) if lat is not None else float('nan'),
-            latency_p99_s=float(np.percentile(lat, 99)) if lat is not None else float('nan'),
-        )
+        return {
+            'messages_received': self.messages_received, 'messages_accepted': self.messages_accepted,
+            'messages_missing': self.gaps.missing,
+            'recent_missing_fraction': round(self.gaps.recent_fraction, 6),
+            'samples_added': self.samples_added, 'samples_skipped': self.samples_skipped,
+            'samples_rate_limited': self.samples_rate_limited,
+            'samples_outliers': self.samples_outliers,
+            'rejected': dict(self.rejected), 'rejected_total': self.rejected_total,
+            'recent_rejected_fraction': self.recent_rejected_fraction,
+            'refits_started': self.refits_started, 'refits_ok': self.refits_ok,
+            'refits_failed': self.refits_failed, 'refits_rejected': self.refits_rejected,
+            'last_refit_error': self.last_refit_error,
+            'last_refit_stamp': self.last_refit_stamp,
+            'last_refit_wall_time': self.last_refit_wall_time,
+            'last_refit_duration_s': self.last_refit_duration_s,
+            'last_refit_optimized': self.last_refit_optimized,
+            'passivity_fallbacks': self.passivity_fallbacks,
+            'nonfinite_outputs': self.nonfinite_outputs,
+            'inverse_dynamics_errors': self.inverse_dynamics_errors,
+            'time_jumps_back': self.time_jumps_back, 'time_jumps_forward': self.time_jumps_forward,
+            'recertifications': self.recertifications,
+            'latency_median_s': float(np.median(lat)) if lat is not None else float('nan'),
+            'latency_p99_s': float(np.percentile(lat, 99)) if lat is not None else float('nan'),
+        }
 
     def status(self, state: dict) -> tuple:
         """(level, message) from the counters and the estimator ``state`` (keys: trained,

@@ -65,3 +65,12 @@ def test_the_estimator_reports_missing_messages_and_warns():
     d = est.diagnostics()
     assert d['recent_missing_fraction'] == 0.0 and 'messages missing' not in d['message']
     assert d['level'] == OK, d['message']
+
+
+def test_a_change_of_publishing_rate_is_learned_not_counted_forever():
+    t1 = stamps(3000, period=1e-3, jitter=1e-4)
+    t2 = t1[-1] + stamps(3000, period=1e-2, jitter=1e-3, seed=1)     # 1 kHz -> 100 Hz
+    g = GapCounter()
+    for s in np.r_[t1, t2]:
+        g.note(s)
+    assert g.recent_fraction == 0.0 and g.missing < 2000
