@@ -149,13 +149,13 @@ def machine_info() -> dict:
         load = os.getloadavg()
     except OSError:
         load = (float('nan'),) * 3
-    return dict(
-        date=_dt.datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z'),
-        host=platform.node(), cpu=_cpu_model(), cores=os.cpu_count(),
-        os=f'{platform.system()} {platform.release()}',
-        python=platform.python_version(), numpy=np.__version__, scipy=scipy.__version__,
-        sklearn=skv, blas=_blas(), git=_git_rev(),
-        load=f'{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}')
+    return {
+        'date': _dt.datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z'),
+        'host': platform.node(), 'cpu': _cpu_model(), 'cores': os.cpu_count(),
+        'os': f'{platform.system()} {platform.release()}',
+        'python': platform.python_version(), 'numpy': np.__version__, 'scipy': scipy.__version__,
+        'sklearn': skv, 'blas': _blas(), 'git': _git_rev(),
+        'load': f'{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}'}
 
 
 def header_lines(title: str, script: str, quick: bool, seconds: Optional[float] = None) -> str:
@@ -298,8 +298,7 @@ def far_points(rng, lo, hi, k: int, factor: float = 100.0) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- models
-KINDS = ('ard', 'diag', 'full')
-MODES = ('none', 'paper', 'certified', 'projected')
+KINDS = ('ard', 'diag', 'full')          # table order (the registry's order is full, diag, ard)
 LABEL = {'ard': 'ARD-GP', 'diag': 'Diag-D-GP', 'full': 'Full-D-GP'}
 # plot styles shared by the scripts: line style per passivity mode, colour per model kind
 MODE_STYLE = {'none': '-', 'paper': ':', 'certified': '--', 'projected': '-.'}
@@ -307,7 +306,9 @@ KIND_COLOR = {'ard': 'C0', 'diag': 'C1', 'full': 'C2'}
 
 
 def modes_for(kind: str) -> tuple:
-    return ('none', 'projected') if kind == 'ard' else MODES
+    """The passivity modes of a model kind, from the registry (dgp_ros.gp.passivity)."""
+    from dgp_ros.gp import modes_for as _modes
+    return _modes(kind)
 
 
 def fit_all_modes(kind: str, Q, T, modes: Optional[Sequence[str]] = None, **kw) -> dict:
@@ -322,7 +323,7 @@ def fit_all_modes(kind: str, Q, T, modes: Optional[Sequence[str]] = None, **kw) 
     t0 = time.perf_counter()
     base = make_model(kind, passivity='none', **kw).fit(Q, T, optimize=True)
     out = {'none': (base, time.perf_counter() - t0)}
-    hp = base.get_params()['hyperparams']
+    hp = base.hyperparams_
     for mode in modes:
         if mode == 'none':
             continue
@@ -334,10 +335,10 @@ def fit_all_modes(kind: str, Q, T, modes: Optional[Sequence[str]] = None, **kw) 
 
 def cert_summary(model) -> dict:
     c = model.certificate()
-    return dict(certified=bool(c.certified), margin=float(c.margin), method=str(c.method),
-                scale=float(c.correction_scale),
-                seconds=float(c.details.get('seconds', float('nan'))) if c.details else float('nan'),
-                domain=c.domain)
+    return {'certified': bool(c.certified), 'margin': float(c.margin), 'method': str(c.method),
+            'scale': float(c.correction_scale),
+            'seconds': float(c.details.get('seconds', float('nan'))) if c.details else float('nan'),
+            'domain': c.domain}
 
 
 def savefig(fig, out: str, name: str) -> str:

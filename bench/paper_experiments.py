@@ -27,6 +27,8 @@ import numpy as np  # noqa: E402
 
 import common as C  # noqa: E402
 
+from dgp_ros.gp import PASSIVITY_MODES  # noqa: E402
+
 OUT_NAMES = ('drag', '-side', 'lift')
 # Flown envelope of the default approach (sim_bridge docstring): alpha, beta in rad, V in m/s.
 VOLUME_LO = np.array([np.deg2rad(-4.8), np.deg2rad(-10.0), 86.0])
@@ -43,7 +45,7 @@ def _extra(p):
 def fit_kw(a) -> dict:
     """Model options: library defaults in full mode; a cheaper optimizer and verification
     budget in quick mode (CI smoke test)."""
-    return dict(n_restarts=0, max_boxes=2000, max_opt_samples=100) if a.quick else {}
+    return {'n_restarts': 0, 'max_boxes': 2000, 'max_opt_samples': 100} if a.quick else {}
 
 
 def trajectory_split(k: int):
@@ -77,11 +79,11 @@ def part_a(a, data):
             C.log(f'(a) {kind} {mode}: fit {sec:.2f} s')
             P = m.predict(Q)
             e = (P - T) / mass
-            s = dict(nmse=C.nmse(P, T), nmse_val=C.nmse(P[va], T[va]), mean=e.mean(axis=0),
-                     var=e.var(axis=0), fit_s=sec, cert=C.cert_summary(m), pred=P)
+            s = {'nmse': C.nmse(P, T), 'nmse_val': C.nmse(P[va], T[va]), 'mean': e.mean(axis=0),
+                 'var': e.var(axis=0), 'fit_s': sec, 'cert': C.cert_summary(m), 'pred': P}
             stats[(kind, mode)] = s
             models[(kind, mode)] = m
-    return dict(models=models, stats=stats, tr=tr, va=va, mass=mass, Q=Q, T=T)
+    return {'models': models, 'stats': stats, 'tr': tr, 'va': va, 'mass': mass, 'Q': Q, 'T': T}
 
 
 def section_a(a, A, wall):
@@ -107,14 +109,14 @@ def section_a(a, A, wall):
                     [C.fmt_time(s['fit_s'])])
     L.append(C.md_table(['model', 'passivity'] + [f'NMSE {o}' for o in OUT_NAMES] +
                         ['fit time'], rows))
-    L.append('### Error / mass, mean and variance per output (the paper\'s Table 1 metric)\n')
+    L.append("### Error / mass, mean and variance per output (the paper's Table 1 metric)\n")
     rows = []
     for c in COMBOS:
         s = st[c]
         rows.append([C.LABEL[c[0]], c[1]] +
                     [f'{C.fmt(s["mean"][j])} / {C.fmt(s["var"][j])}' for j in range(3)])
     L.append(C.md_table(['model', 'passivity'] + [f'{o}: mean / var' for o in OUT_NAMES], rows))
-    L.append('### Beside the paper\'s Table 1 (lateral force)\n')
+    L.append("### Beside the paper's Table 1 (lateral force)\n")
     L.append('**Their aircraft model is not ours.** The paper identifies a different simulated '
              'aircraft and approach; ours is the A320 shipped with JSBSim flying our approach '
              '(sim_bridge), our lateral output is `-side` force and our error sign is '
@@ -124,12 +126,12 @@ def section_a(a, A, wall):
     for kind in ('full', 'diag', 'ard'):
         pm, pv = PAPER_TABLE1[kind]
         r = [C.LABEL[kind], f'{C.fmt(pm)} / {C.fmt(pv)}']
-        for mode in ('none', 'paper', 'certified', 'projected'):
+        for mode in PASSIVITY_MODES:
             s = st.get((kind, mode))
             r.append('-' if s is None else f'{C.fmt(s["mean"][1])} / {C.fmt(s["var"][1])}')
         rows.append(r)
-    L.append(C.md_table(['model', 'paper Table 1 (mean / var)', 'ours none', 'ours paper',
-                         'ours certified', 'ours projected'], rows))
+    L.append(C.md_table(['model', 'paper Table 1 (mean / var)'] +
+                        [f'ours {mode}' for mode in PASSIVITY_MODES], rows))
     # plot: trajectory and predictions of the unconstrained and guaranteed Full-D-GP
     plt = C.plt()
     t = np.arange(A['Q'].shape[0]) / 60.0
@@ -185,7 +187,7 @@ def part_b(a, aero):
                     certs[(kind, mode)][n].append(C.cert_summary(m))
                     if seed == seeds[0] and n == ns[-1]:
                         last_models[(kind, mode)] = (m, Q)
-    return dict(ns=ns, seeds=seeds, res=res, certs=certs, k_test=k_test, models=last_models)
+    return {'ns': ns, 'seeds': seeds, 'res': res, 'certs': certs, 'k_test': k_test, 'models': last_models}
 
 
 def section_b(a, B, wall):
@@ -269,13 +271,13 @@ def part_c(a, A, B, aero):
         kb = 5_000 if a.quick else 200_000
         lo_b, hi_b = VOLUME_LO, VOLUME_HI
         vv = violations({c: mq[0] for c, mq in B['models'].items()}, lo_b, hi_b, kb, seed=98)
-        vv = dict(k=kb, v=vv)
+        vv = {'k': kb, 'v': vv}
     # truth inside the training box (frozen-state JSBSim; far outside it is not defined)
     kt = 1000 if a.quick else 20000
     rng = np.random.default_rng(5)
     Pin = C.random_points(rng, lo, hi, kt)
     truth_neg = int((C.power(Pin, aero.tau(Pin)) < 0).sum())
-    return dict(k=k, lo=lo, hi=hi, traj=vt, vol=vv, truth_neg=truth_neg, kt=kt)
+    return {'k': k, 'lo': lo, 'hi': hi, 'traj': vt, 'vol': vv, 'truth_neg': truth_neg, 'kt': kt}
 
 
 def section_c(a, A, B, Cc, wall):
@@ -332,7 +334,7 @@ def section_c(a, A, B, Cc, wall):
                    (('full', 'certified'), 'C4'), (('full', 'projected'), 'C1')):
         axes[0].hist(C.power(Q, A['stats'][c]['pred']) / 1e6, bins=80, histtype='step',
                      color=col, label=f'{C.LABEL[c[0]]} {c[1]}')
-    axes[0].set_xlabel('dissipated power qd^T tau (MW, in the paper\'s mixed units)')
+    axes[0].set_xlabel("dissipated power qd^T tau (MW, in the paper's mixed units)")
     axes[0].set_ylabel('samples along the trajectory')
     axes[0].legend(fontsize=7)
     axes[0].set_title('Along the approach')

@@ -128,36 +128,36 @@ def run_inprocess(args) -> dict:
     wall = time.perf_counter() - t0
     rss1 = rss_mib()
     d = est.diagnostics()
-    durations = list(est.refit_durations)
+    durations = list(est.health.refit_durations)
     running_at_end = bool(d['refit_running'])
-    pending_at_end = len(getattr(est, '_pending', ()))
+    pending_at_end = d['pending_samples']
     est.close(timeout=args.close_timeout)      # the refit thread is a daemon: do not hang
     tr = np.array(backlog_trace)
     half = tr[tr[:, 0] >= tr[-1, 0] / 2] if len(tr) else tr
     slope = float(np.polyfit(half[:, 0], half[:, 1], 1)[0]) if len(half) > 3 else float('nan')
     misses = sum(1 for x in durations if x > args.refit_period) if args.refit_period > 0 else 0
     expected_refits = int(args.duration / args.refit_period) if args.refit_period > 0 else 1
-    return dict(
-        mode='inprocess', messages=n_total, wall_s=wall, achieved_rate_hz=n_total / wall,
-        backlog=dict(max=float(tr[:, 1].max()) if len(tr) else 0.0,
-                     end=float(tr[-1, 1]) if len(tr) else 0.0, slope_msgs_per_s=slope),
-        rss=dict(after_warmup_mib=rss0, end_mib=rss1, growth_mib=rss1 - rss0),
-        refits=dict(started=est.refits_started, ok=d['refits_ok'], failed=d['refits_failed'],
-                    expected_by_period=expected_refits,
-                    deadline_misses=misses + (1 if running_at_end and not durations else 0),
-                    running_at_end=running_at_end, pending_samples_at_end=pending_at_end, durations_s=[round(x, 4) for x in durations],
-                    max_s=max(durations) if durations else float('nan'),
-                    last_error=d['last_refit_error']),
-        latency=dict(process_p50_ms=1e3 * pct(proc_t, 50), process_p99_ms=1e3 * pct(proc_t, 99),
-                     process_max_ms=1e3 * float(proc_t.max()),
-                     lateness_p50_ms=1e3 * pct(late, 50), lateness_p99_ms=1e3 * pct(late, 99),
-                     lateness_max_ms=1e3 * float(late.max())),
-        buffer_fill=d['buffer_fill'], samples_added=d['samples_added'],
-        samples_skipped=d['samples_skipped'],
-        samples_rate_limited=d['samples_rate_limited'], sources=sources,
-        invariant=dict(non_finite=bad_finite, non_passive=bad_passive,
-                       passivity_fallbacks=d['passivity_fallbacks']),
-        config=cfg.to_dict())
+    return {
+        'mode': 'inprocess', 'messages': n_total, 'wall_s': wall, 'achieved_rate_hz': n_total / wall,
+        'backlog': {'max': float(tr[:, 1].max()) if len(tr) else 0.0,
+                    'end': float(tr[-1, 1]) if len(tr) else 0.0, 'slope_msgs_per_s': slope},
+        'rss': {'after_warmup_mib': rss0, 'end_mib': rss1, 'growth_mib': rss1 - rss0},
+        'refits': {'started': d['refits_started'], 'ok': d['refits_ok'], 'failed': d['refits_failed'],
+                   'expected_by_period': expected_refits,
+                   'deadline_misses': misses + (1 if running_at_end and not durations else 0),
+                   'running_at_end': running_at_end, 'pending_samples_at_end': pending_at_end, 'durations_s': [round(x, 4) for x in durations],
+                   'max_s': max(durations) if durations else float('nan'),
+                   'last_error': d['last_refit_error']},
+        'latency': {'process_p50_ms': 1e3 * pct(proc_t, 50), 'process_p99_ms': 1e3 * pct(proc_t, 99),
+                    'process_max_ms': 1e3 * float(proc_t.max()),
+                    'lateness_p50_ms': 1e3 * pct(late, 50), 'lateness_p99_ms': 1e3 * pct(late, 99),
+                    'lateness_max_ms': 1e3 * float(late.max())},
+        'buffer_fill': d['buffer_fill'], 'samples_added': d['samples_added'],
+        'samples_skipped': d['samples_skipped'],
+        'samples_rate_limited': d['samples_rate_limited'], 'sources': sources,
+        'invariant': {'non_finite': bad_finite, 'non_passive': bad_passive,
+                      'passivity_fallbacks': d['passivity_fallbacks']},
+        'config': cfg.to_dict()}
 
 
 def run_node(args) -> dict:
@@ -246,17 +246,17 @@ def run_node(args) -> dict:
         kv = {v.key: v.value for v in diags[-1].status[0].values} if diags else {}
         r = np.array([x for _, x in rss_trace])
         w = max(1, len(r) // 5)
-        return dict(mode='node', messages=n_total, received_estimates=got[0],
-                    estimator_messages_received=int(kv.get('messages_received', -1)),
-                    dropped_frac=1 - got[0] / n_total,
-                    rss=dict(after_warmup_mib=float(r[w]) if len(r) > w else float('nan'),
-                             end_mib=float(r[-1]), growth_mib=float(r[-1] - r[min(w, len(r) - 1)])),
-                    latency=dict(e2e_p50_ms=1e3 * pct(lat, 50), e2e_p99_ms=1e3 * pct(lat, 99)),
-                    refits=dict(ok=int(kv.get('refits_ok', -1)),
-                                failed=int(kv.get('refits_failed', -1)),
-                                last_duration_s=kv.get('last_refit_duration_s')),
-                    node_latency_p99_s=kv.get('latency_p99_s'),
-                    invariant=bad)
+        return {'mode': 'node', 'messages': n_total, 'received_estimates': got[0],
+                'estimator_messages_received': int(kv.get('messages_received', -1)),
+                'dropped_frac': 1 - got[0] / n_total,
+                'rss': {'after_warmup_mib': float(r[w]) if len(r) > w else float('nan'),
+                        'end_mib': float(r[-1]), 'growth_mib': float(r[-1] - r[min(w, len(r) - 1)])},
+                'latency': {'e2e_p50_ms': 1e3 * pct(lat, 50), 'e2e_p99_ms': 1e3 * pct(lat, 99)},
+                'refits': {'ok': int(kv.get('refits_ok', -1)),
+                           'failed': int(kv.get('refits_failed', -1)),
+                           'last_duration_s': kv.get('last_refit_duration_s')},
+                'node_latency_p99_s': kv.get('latency_p99_s'),
+                'invariant': bad}
     finally:
         try:
             os.killpg(child.pid, signal.SIGINT)

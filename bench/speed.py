@@ -64,8 +64,9 @@ def sk_models(model, Q, T):
     """One sklearn GPR per output with exactly ``model``'s ARD hyper-parameters (standardized)."""
     from sklearn.gaussian_process import GaussianProcessRegressor
     from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
-    hp = model.get_params()['hyperparams']
-    sx, sy, mean = (np.asarray(hp[k]) for k in ('sx', 'sy', 'mean'))
+    hp = model.hyperparams_
+    sx, sy = (np.asarray(hp[k]) for k in ('sx', 'sy'))
+    mean = model.mean_(np.zeros((1, N_OUT)))[0]           # the constant prior of the ARD baseline
     X = Q / sx
     Y = (T - mean) / sy
     out = []
@@ -89,9 +90,10 @@ def sk_predict(gprs, Xs, std=False):
 
 def floor_matrix(model, n):
     """An n x n SPD matrix like the fit's (output 0's kernel + noise), standardized."""
-    X = model._X[:n]
-    K = model._kmat(0, X, X)
-    K[np.diag_indices(n)] += np.exp(model._hp['log_sn2'][0])
+    p = model.posterior_
+    X = p.X[:n]
+    K = p.structure.output_kernel(0, X, X, p.hyper.log_ls, p.hyper.log_sf2)
+    K[np.diag_indices(n)] += np.exp(p.hyper.log_sn2[0])
     return K
 
 
@@ -129,11 +131,11 @@ def bench_core(a, Q, T, ns):
             t0 = time.perf_counter()
             m = make_model(kind, n_restarts=nr).fit(Q[:n], T[:n], optimize=True)
             opt[(n, kind)] = time.perf_counter() - t0
-            hps[kind] = m.get_params()['hyperparams']
+            hps[kind] = m.hyperparams_
         # sklearn with its optimizer, same kernel family, same number of starts, same data
         hp = hps['ard']
         X = Q[:n] / np.asarray(hp['sx'])
-        Y = (T[:n] - np.asarray(hp['mean'])) / np.asarray(hp['sy'])
+        Y = (T[:n] - np.asarray(hp['mean']['value'])) / np.asarray(hp['sy'])
         t0 = time.perf_counter()
         for m in range(N_OUT):
             k = ConstantKernel(1.0) * RBF(np.ones(3)) + WhiteKernel(1e-2)
@@ -258,7 +260,7 @@ def bench_node(a, buffers, n_msgs, tmpdir):
         if kind not in hp:
             C.log(f'node: optimizing {kind} hyper-parameters on 200 approach samples')
             hp[kind] = make_model(kind, n_restarts=0, max_opt_samples=200).fit(
-                Qd[sub], Td[sub]).get_params()['hyperparams']
+                Qd[sub], Td[sub]).hyperparams_
         idx = np.linspace(0, Qd.shape[0] - 1, b).astype(int)
         t0 = time.perf_counter()
         m = make_model(kind, passivity=mode, hyperparams=hp[kind], window=b).fit(
@@ -276,9 +278,9 @@ def bench_node(a, buffers, n_msgs, tmpdir):
 
     def worst_case_cfg(kind, mode, b, **kw):
         """Warm-started from the model file, every sample learned, no refits."""
-        base = dict(model=kind, passivity=mode, buffer_size=b, min_samples=20,
-                    refit_period_s=0.0, selection='all', refit_mode='sync',
-                    model_path=files[(kind, mode, b)], min_sample_interval_s=0.0)
+        base = {'model': kind, 'passivity': mode, 'buffer_size': b, 'min_samples': 20,
+                'refit_period_s': 0.0, 'selection': 'all', 'refit_mode': 'sync',
+                'model_path': files[(kind, mode, b)], 'min_sample_interval_s': 0.0}
         base.update(kw)
         return EstimatorConfig(**base)
 
@@ -446,7 +448,7 @@ def main(argv=None) -> int:
              f'for every contender: the 2 cores are shared. Times are medians '
              f'of repeated runs; ratios compare runs made back to back in this process. '
              f'sklearn: one `GaussianProcessRegressor(optimizer=None)` per output with '
-             f'`ConstantKernel*RBF(length_scale=array)+WhiteKernel` at ARD-GP\'s hyper-parameters '
+             f"`ConstantKernel*RBF(length_scale=array)+WhiteKernel` at ARD-GP's hyper-parameters "
              f'(standardized data); its predictions agree with ARD-GP to '
              f'{C.fmt(max(res[n]["sk_agree"] for n in ns))} (max relative). Floor: '
              f'{N_OUT} x `scipy.linalg.cho_factor(check_finite=False)` of an n x n kernel matrix.\n')
@@ -501,7 +503,7 @@ def main(argv=None) -> int:
                          C.fmt_time(r[(k, 'single')]),
                          C.fmt(r[(k, 'single')] / r['sk_single']),
                          C.fmt_time(r[(k, 'single_node')])])
-    L.append(f'Batch: {K_BATCH} points per call, time per point. Ratios are to sklearn\'s ARD '
+    L.append(f"Batch: {K_BATCH} points per call, time per point. Ratios are to sklearn's ARD "
              f'prediction of the same n (mean: `predict`, with variance: `return_std=True`); '
              f'node path = mean + variance + damping matrix of one query.\n')
     L.append(C.md_table(['n', 'model', 'batch mean /pt', 'x sklearn', 'batch mean+var /pt',
@@ -523,7 +525,7 @@ def main(argv=None) -> int:
     L.append(C.md_table(['n'] + [C.LABEL[k] for k in C.KINDS] + ['sklearn (ARD)',
                                                                  'ARD-GP / sklearn'], rows))
     L.append('### Online estimator (`OnlineEstimator.process`, in-process)\n')
-    L.append('Warm start through the node\'s model-file path: a model fitted on `buffer` '
+    L.append("Warm start through the node's model-file path: a model fitted on `buffer` "
              'samples of the approach (hyper-parameters optimized once on 200 samples; window = '
              'buffer) is saved and loaded by the estimator, whose buffer it fills. Then messages '
              'of the simulated approach (60 Hz stamps, looped with 0.1 % jitter) are processed '
@@ -535,7 +537,7 @@ def main(argv=None) -> int:
              'The "default" row is the default configuration (Full-D-GP projected, buffer 200, '
              'novelty selection, learning limit 10 ms, async refits every 10 s of stamp time in '
              'a background thread, optimization every 5th refit) and calls `diagnostics()` once '
-             'per wall second on the message thread, as the node\'s timer does; a refit started '
+             "per wall second on the message thread, as the node's timer does; a refit started "
              'at a 10 s stamp boundary runs concurrently with the stream.\n')
     rows = []
     for key, v in node.items():

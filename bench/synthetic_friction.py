@@ -90,7 +90,7 @@ def main(argv=None) -> int:
             for kind in C.KINDS:
                 C.log(f'{NAME}: seed {seed} n {n} {kind}')
                 fits = C.fit_all_modes(kind, Q, T, random_state=seed,
-                                       **(dict(n_restarts=0, max_boxes=2000) if a.quick
+                                       **({'n_restarts': 0, 'max_boxes': 2000} if a.quick
                                           else {}))
                 for mode, (m, sec) in fits.items():
                     c = (kind, mode)

@@ -116,3 +116,36 @@ def test_speed_quick(tmp_path):
     rows = table_rows(s, ('full', 'projected', 'all'))
     assert rows and float(rows[0][4]) > 0                      # msg/s
     assert rows[0][9] == '0'                                   # no passivity fallbacks
+
+
+def test_robot_arms_quick(tmp_path):
+    run('robot_arms.py', tmp_path)
+    s = section(tmp_path, 'robot_arms')
+    assert 'Real robot arms: raw /joint_states in, passive friction out' in s
+    assert (tmp_path / 'bench' / 'robot_arms_panda.png').stat().st_size > 1000
+    # held-out NMSE table: the shipped defaults, a D-GP with the friction prior, the baselines
+    from dgp_ros.online.config import PARAMS
+    shipped = ('Full-D-GP **(defaults)**', PARAMS['prior'].default,
+               'on' if PARAMS['bias'].default else 'off')
+    assert PARAMS['model'].default == 'full'
+    for first in (shipped, ('Full-D-GP', 'viscous', 'off'), ('ARD-GP', 'constant', '-')):
+        rows = [r for r in table_rows(s, ()) if len(r) >= 10 and tuple(r[1:3]) == first[1:]
+                and r[0].replace(' **(best)**', '') == first[0]]
+        assert rows, first
+        nm = numbers(' '.join(rows[0][3:10]))
+        assert len(nm) == 7 and all(math.isfinite(x) and x >= 0 for x in nm), rows[0]
+    best = [r for r in table_rows(s, ()) if r and '**(best)**' in r[0]]
+    assert best and all(x < 1 for x in numbers(' '.join(best[0][3:10]))), best
+    for name in ('Coulomb-viscous LS (n=', 'sigmoid (Makkar) LS (n='):
+        rows = [r for r in table_rows(s, ()) if r and r[0].startswith(name)]
+        assert rows and all(math.isfinite(x) for x in numbers(' '.join(rows[0][3:10]))), name
+    # negative power: 0 for every projected model inside and far outside the data box
+    proj = [r for r in table_rows(s, ()) if len(r) == 13 and r[3] == 'projected']
+    assert len(proj) == 3
+    assert all(r[9] in ('0', '-') and r[10] in ('0', '-') for r in proj), proj   # '-': untrained
+    assert any(r[9] == '0' for r in proj)
+    # targets: met/missed with numbers; the no-inverse-dynamics WARN and 0 negative power hold
+    targets = [r for r in table_rows(s, ()) if len(r) == 3 and r[1] in ('met', '**missed**')]
+    assert len(targets) >= 6
+    assert any('WARN' in r[0] and r[1] == 'met' for r in targets)
+    assert any('0 negative power' in r[0] and r[1] == 'met' for r in targets)
