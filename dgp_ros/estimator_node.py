@@ -1,4 +1,5 @@
-"""``dgp_estimator``: the online D-GP estimator node (console script ``estimator``).
+"""
+``dgp_estimator``: the online D-GP estimator node (console script ``estimator``).
 
 A thin rclpy wrapper around :class:`dgp_ros.online.OnlineEstimator`: every decision is made
 there, so that bag replay does exactly what the node does. ``estimator --help`` lists the
@@ -8,7 +9,8 @@ Subscribes ``generalized_state`` (sensor_msgs/JointState, best effort, depth ``q
 publishes, for every accepted measurement, stamped like it:
 
 - ``~/damping_force`` (JointState: names, velocity = qd, effort = tau_hat) and
-  ``~/damping_force_stddev`` (effort = posterior standard deviation);
+  ``~/damping_force_stddev`` (effort = posterior standard deviation; computed and published
+  only while it has subscribers, as are the two damping matrix topics);
 - ``~/damping_matrix_stamped`` (JointState: the measurement's stamp and joint names, velocity =
   qd, effort = D(qd) row-major, N * N entries) and ``~/damping_matrix`` (Float64MultiArray, the
   same N x N row-major, for consumers of the unstamped array); not for model=ard;
@@ -23,13 +25,13 @@ process exits 0 (``node_runtime``).
 """
 from __future__ import annotations
 
+from collections import deque
 import dataclasses
 import sys
-from collections import deque
 from typing import List
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -40,10 +42,14 @@ from std_srvs.srv import Trigger
 from dgp_ros.messages import joint_state_sample
 from dgp_ros.node_runtime import (check_unknown_overrides, declare_parameters, help_text,
                                   reject_unknown, run)
-from dgp_ros.online import ERROR, OK, WARN, EstimatorConfig, OnlineEstimator
+from dgp_ros.online import ERROR, EstimatorConfig, OK, OnlineEstimator, WARN
 from dgp_ros.online.config import NODE_PARAMS, PARAMS
 
 NODE_NAME = 'dgp_estimator'
+#: how often the node checks which optional outputs have subscribers (s)
+OUTPUTS_PERIOD_S = 0.5
+#: stamp -> answer ages beyond this are stamps of another clock (a replayed bag): not latency
+AGE_PLAUSIBLE_S = 60.0
 _CONFIG_FIELDS = {f.name for f in dataclasses.fields(EstimatorConfig)}
 
 
@@ -87,7 +93,8 @@ class EstimatorNode(Node):
         depth = int(self.get_parameter('queue_depth').value)
         qos_in = QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
                             reliability=ReliabilityPolicy.BEST_EFFORT)
-        self.sub = self.create_subscription(JointState, 'generalized_state', self._on_state, qos_in)
+        self.sub = self.create_subscription(JointState, 'generalized_state', self._on_state,
+                                            qos_in)
         self.pub_force = self.create_publisher(JointState, '~/damping_force', 10)
         self.pub_std = self.create_publisher(JointState, '~/damping_force_stddev', 10)
         self.pub_D = self.create_publisher(Float64MultiArray, '~/damping_matrix', 10)
@@ -101,6 +108,10 @@ class EstimatorNode(Node):
         self.create_service(Trigger, '~/save_model', self._srv_save)
         self._diag_timer = self.create_timer(
             float(self.get_parameter('diagnostics_period_s').value), self._publish_diagnostics)
+        # the standard deviation and the damping matrix cost about 60 % of a 7-joint answer:
+        # computed while someone subscribes (checked every OUTPUTS_PERIOD_S)
+        self._update_outputs()
+        self._outputs_timer = self.create_timer(OUTPUTS_PERIOD_S, self._update_outputs)
         self._last_msg_time = None
         self._age = deque(maxlen=1000)        # stamp -> answer, node clock (s)
         self.get_logger().info(
@@ -108,6 +119,12 @@ class EstimatorNode(Node):
             f'prior={config.prior} buffer={config.buffer_size} queue_depth={depth} '
             f'inverse_dynamics={config.inverse_dynamics or "none"} '
             f'joints={config.joints or "(message order)"}')
+
+    def _update_outputs(self) -> None:
+        self.estimator.set_outputs(
+            stddev=self.pub_std.get_subscription_count() > 0,
+            damping=(self.pub_D.get_subscription_count() +
+                     self.pub_D_stamped.get_subscription_count()) > 0)
 
     # ---------------------------------------------------------- parameters
     def _config_from(self, overrides: dict) -> EstimatorConfig:
@@ -162,7 +179,9 @@ class EstimatorNode(Node):
         names = list(est.names) if est.names else list(msg.name)
         hdr = msg.header
         self.pub_force.publish(_joint_state(hdr, names, (), est.qd.tolist(), est.tau_hat.tolist()))
-        self.pub_std.publish(_joint_state(hdr, names, (), est.qd.tolist(), est.stddev.tolist()))
+        if np.all(np.isfinite(est.stddev)):         # NaN: nobody subscribed (not computed)
+            self.pub_std.publish(_joint_state(hdr, names, (), est.qd.tolist(),
+                                              est.stddev.tolist()))
         if est.D is not None:
             self.pub_D_stamped.publish(_joint_state(hdr, names, (), est.qd.tolist(),
                                                     est.D.ravel().tolist()))
@@ -175,7 +194,9 @@ class EstimatorNode(Node):
             h.stamp.nanosec = min(int(round((r.stamp_s % 1) * 1e9)), 999_999_999)
             self.pub_residual.publish(_joint_state(h, names, r.q.tolist(), r.qd.tolist(),
                                                    r.residual.tolist()))
-        self._age.append((now.nanoseconds - (hdr.stamp.sec * 10 ** 9 + hdr.stamp.nanosec)) * 1e-9)
+        age = (now.nanoseconds - (hdr.stamp.sec * 10 ** 9 + hdr.stamp.nanosec)) * 1e-9
+        if abs(age) < AGE_PLAUSIBLE_S:       # stamps on this clock (not a bag's own time base)
+            self._age.append(age)
 
     def diagnostic_status(self) -> DiagnosticStatus:
         d = self.estimator.diagnostics()
@@ -235,8 +256,12 @@ class EstimatorNode(Node):
         return response
 
     def shutdown(self) -> None:
-        """Save the current model if ``model_path`` is set (a refit still running is waited for
-        at most 2 s; the current model is the one saved). Never raises."""
+        """
+        Save the current model if ``model_path`` is set.
+
+        A refit still running is waited for at most 2 s; the current model is the one saved. Never
+        raises.
+        """
         try:
             self.estimator.close(timeout=2.0)
             if self.estimator.config.model_path and self.estimator.trained:

@@ -1,4 +1,5 @@
-"""The exact GP posterior of a D-GP: hyper-parameters, data, Cholesky factors and weights.
+"""
+The exact GP posterior of a D-GP: hyper-parameters, data, Cholesky factors and weights.
 
 Units: public arguments are model units (``Qd`` (k, N) velocities, ``Tau`` (k, N) forces). Inside,
 inputs are standardized ``x = qd / s_x`` and outputs ``y = (tau - m_tau(qd) - b) / s_y``, with
@@ -17,16 +18,16 @@ correction weight ``w`` belongs to the passivity policy (1 when nothing is enfor
 from __future__ import annotations
 
 import copy
-import math
 from dataclasses import dataclass
+import math
 from typing import Optional
 
 import numpy as np
-from scipy.linalg import LinAlgError, cholesky
+from scipy.linalg import cholesky, LinAlgError
 from scipy.linalg.blas import dsymv
 
-from ._chol import WindowCholesky, cholesky_in_place
-from .kernels import Structure, lower_se_sum, se_ard
+from ._chol import cholesky_in_place, WindowCholesky
+from .kernels import lower_se_sum, se_ard, Structure
 from .means import PriorMean
 from .verify import CorrectionTerms
 
@@ -41,7 +42,8 @@ _KEEP_PARTS = 2000
 
 @dataclass
 class Hyper:
-    """Kernel hyper-parameters and standardization (standardized units, natural logs).
+    """
+    Kernel hyper-parameters and standardization (standardized units, natural logs).
 
     log_sf2 : (E,) signal variances per element (``-inf`` = element switched off)
     log_ls : (E, N) lengthscales per element
@@ -65,8 +67,12 @@ class Hyper:
 
     @classmethod
     def from_dict(cls, d: dict, structure: Optional[Structure] = None) -> 'Hyper':
-        """Validated: finite where it must be, positive scales, exp() without overflow, and
-        shapes that match ``structure`` when given. Raises ValueError naming the field."""
+        """
+        Make validated hyper-parameters from ``d``.
+
+        Validated: finite where it must be, positive scales, exp() without overflow, and
+        shapes that match ``structure`` when given. Raises ValueError naming the field.
+        """
         missing = [k for k in cls.FIELDS if k not in d]
         if missing:
             raise ValueError(f'hyperparams is missing {missing}')
@@ -111,7 +117,8 @@ def chol_jitter(K: np.ndarray):
 
 
 class Posterior:
-    """Exact posterior of one D-GP (see the module docstring).
+    """
+    Exact posterior of one D-GP (see the module docstring).
 
     Parameters
     ----------
@@ -131,6 +138,7 @@ class Posterior:
     alpha : (n, N) weights ``(K^(m) + s_eps^2 I)^-1 R[:, m]``;  jitter : (N,) added jitter
     delta : (n, N) or None, a change of the weights made by a passivity repair (``repair``);
     weights : ``alpha + delta``, the weights of the posterior mean (the variance is unchanged)
+
     """
 
     def __init__(self, structure: Structure, hyper: Hyper, mean: PriorMean, Qd: np.ndarray,
@@ -157,11 +165,15 @@ class Posterior:
         return None if self.window is None else self.window + 1
 
     def _factorize(self) -> None:
-        """Per output: the kernel's lower triangle built in place in a factor buffer, Cholesky in
+        """
+        Factorize the kernel of every output in place.
+
+        Per output: the kernel's lower triangle built in place in a factor buffer, Cholesky in
         place (LAPACK, no copy; bounded jitter escalation as ``chol_jitter``), adopted by a
         ``WindowCholesky``. The element kernels are kept while their output is factorized when
         the RKHS norms are wanted (``keep_rkhs``), so that each costs one matrix-vector
-        product instead of a rebuild."""
+        product instead of a rebuild.
+        """
         s, hp, X = self.structure, self.hyper, self.X
         n = X.shape[0]
         self.factors = []
@@ -229,9 +241,9 @@ class Posterior:
         return self
 
     def with_kernel(self, hyper: Hyper) -> 'Posterior':
-        """The same data under other kernel hyper-parameters (same ``sx``, ``sy``): refactorized.
-        """
-        if not (np.array_equal(hyper.sx, self.hyper.sx) and np.array_equal(hyper.sy, self.hyper.sy)):
+        """Refactorize the same data under other kernel hyper-parameters (same ``sx``, ``sy``)."""
+        if not (np.array_equal(hyper.sx, self.hyper.sx)
+                and np.array_equal(hyper.sy, self.hyper.sy)):
             raise ValueError('with_kernel keeps the standardization: sx and sy must not change')
         p = copy.copy(self)
         p.hyper = hyper
@@ -239,7 +251,7 @@ class Posterior:
         return p
 
     def copy(self) -> 'Posterior':
-        """An independent copy (the refit worker updates copies off the message path)."""
+        """Return an independent copy; the refit worker updates copies off the message path."""
         return copy.deepcopy(self)
 
     # ------------------------------------------------------------------ data access
@@ -264,8 +276,12 @@ class Posterior:
         return float(tot)
 
     def rkhs_sq(self) -> np.ndarray:
-        """Per element ``|C_e|_H^2 = a^T K_e a`` (``a = x_n * alpha_m``, K_e with sf2), (E,):
-        kept from the factorization, else rebuilt (one n x n kernel per element)."""
+        """
+        Return the squared RKHS norm of every element correction.
+
+        Per element ``|C_e|_H^2 = a^T K_e a`` (``a = x_n * alpha_m``, K_e with sf2), (E,):
+        kept from the factorization, else rebuilt (one n x n kernel per element).
+        """
         c = self._rkhs
         if c is not None and c[0] is self.weights:
             return c[1]
@@ -279,8 +295,12 @@ class Posterior:
 
     # ------------------------------------------------------------------ update
     def update(self, Qd: np.ndarray, Tau: np.ndarray) -> None:
-        """Append samples (k, N) in place: O(n^2) per sample and output; beyond ``window`` the
-        oldest sample is dropped by a rank-one update of each factor."""
+        """
+        Append samples (k, N) in place.
+
+        O(n^2) per sample and output; beyond ``window`` the oldest sample is dropped by a rank-one
+        update of each factor.
+        """
         s, hp = self.structure, self.hyper
         sn2 = np.exp(hp.log_sn2)
         ls, sf2 = np.exp(hp.log_ls), np.exp(hp.log_sf2)
@@ -310,8 +330,12 @@ class Posterior:
 
     # ------------------------------------------------------------------ prediction
     def element_kernels(self, Q: np.ndarray) -> Optional[np.ndarray]:
-        """All raw element kernels against the training set in one pass for a few queries
-        (E, k, n), or None for batches (which build them per output)."""
+        """
+        Build the raw element kernels for a few queries.
+
+        All raw element kernels against the training set in one pass for a few queries
+        (E, k, n), or None for batches (which build them per output).
+        """
         X = Q / self.hyper.sx
         E = self.structure.E
         if E < 2 or X.shape[0] > 16 or X.shape[0] * self.n * E > 2_000_000:
@@ -320,13 +344,20 @@ class Posterior:
 
     def predict(self, Q: np.ndarray, weight: Optional[np.ndarray] = None,
                 return_var: bool = False, Kel=None):
-        """Damping force ``m_tau(q) + w(q) * correction`` (k, N) and its posterior variance.
+        """
+        Damping force ``m_tau(q) + w(q) * correction`` (k, N) and its posterior variance.
 
         weight : (k,) correction weight ``w`` (None = 1). Kel : from ``element_kernels``.
         The variance is that of the GP (noise-free), in force units squared.
         """
         s, hp = self.structure, self.hyper
         X = Q / hp.sx
+        if Kel is not None and not return_var:          # a few queries: one einsum
+            G = self._element_weights(Kel)
+            corr = G[:, :, 0] if s.kind == 'ard' else np.einsum('kmn,kn->km', G, X)
+            if weight is not None:
+                corr *= weight[:, None]
+            return self.mean.force(Q) + corr * hp.sy, None
         corr = np.zeros_like(X)
         var = np.zeros_like(X) if return_var else None
         for m in range(s.N):
@@ -343,28 +374,51 @@ class Posterior:
             var = var * hp.sy ** 2
         return tau, var
 
+    def _element_weights(self, Kel: np.ndarray) -> np.ndarray:
+        """``G[k, m, n] = sum_j k_e(x_k, x_j) phi_n(x_j) w_jm`` for the elements ``e = (m, n)``
+        that are on (the others 0), from raw element kernels ``Kel`` (E, k, n_train); ARD
+        elements (phi = 1) sit in column 0. Output m's correction is ``sum_n G[:, m, n]
+        phi_n(x)``; the damping entry (m, n) is ``G[:, m, n]`` (model units)."""
+        s, hp = self.structure, self.hyper
+        rows = np.array([m for m, _ in s.elems])
+        cols = np.array([0 if n is None else n for _, n in s.elems])
+        ard = np.array([n is None for _, n in s.elems])
+        on = np.exp(hp.log_sf2) > 0.0
+        phi = np.where(ard[None, :], 1.0, self.X[:, cols])                   # (n_train, E)
+        V = (phi * self.weights[:, rows]).T * on[:, None]                     # (E, n_train)
+        G = np.zeros((Kel.shape[1], s.N, s.N))
+        G[:, rows, cols] = np.einsum('ekj,ej->ke', Kel, V)
+        return G
+
     def damping(self, Q: np.ndarray, weight: Optional[np.ndarray] = None, Kel=None) -> np.ndarray:
-        """Damping matrix ``diag(m_d(q)) + w(q) C(q)`` (k, N, N), model units, with
-        ``predict(q) = D(q) q``. Not defined for the ARD baseline."""
+        """
+        Compute the damping matrix.
+
+        Damping matrix ``diag(m_d(q)) + w(q) C(q)`` (k, N, N), model units, with
+        ``predict(q) = D(q) q``. Not defined for the ARD baseline.
+        """
         s, hp = self.structure, self.hyper
         X = Q / hp.sx
         k = X.shape[0]
         D = np.zeros((k, s.N, s.N))
         idx = np.arange(s.N)
         D[:, idx, idx] = self.mean.diag(Q)
+        if Kel is not None:                             # a few queries: one einsum
+            C = self._element_weights(Kel) * (hp.sy[:, None] / hp.sx[None, :])
+            return D + (C if weight is None else weight[:, None, None] * C)
         ls = np.exp(hp.log_ls)
         for e, (m, n) in enumerate(s.elems):
             sf2 = math.exp(hp.log_sf2[e])
             if sf2 == 0.0:
                 continue
-            ke = se_ard(X, self.X, ls[e], sf2) if Kel is None else Kel[e]
+            ke = se_ard(X, self.X, ls[e], sf2)
             c = (ke @ (self.X[:, n] * self.weights[:, m])) * (hp.sy[m] / hp.sx[n])
             D[:, m, n] += c if weight is None else weight * c
         return D
 
     # ------------------------------------------------------------------ certificates
     def correction_terms(self, scale: float) -> CorrectionTerms:
-        """The correction in the form ``verify.verify_box`` proves (scaled by ``scale``)."""
+        """Return the correction in the form ``verify.verify_box`` proves (scaled by ``scale``)."""
         s, hp = self.structure, self.hyper
         coef = np.stack([self.X[:, n] * self.weights[:, m] * scale for m, n in s.elems])
         sf2 = np.exp(hp.log_sf2)
@@ -376,11 +430,13 @@ class Posterior:
                                rkhs=abs(scale) * rk)
 
     def l1_bound(self, rkhs: bool = True) -> np.ndarray:
-        """A-posteriori bound ``B_mn >= sup_q |C_mn(q)|`` (N, N), model units.
+        """
+        A-posteriori bound ``B_mn >= sup_q |C_mn(q)|`` (N, N), model units.
 
         Per element the smaller of the L1 bound ``sf2 * sum_i |x_{n,i} alpha_{m,i}|`` and the
         RKHS bound ``|g|_H sqrt(sf2)`` (reproducing property and Cauchy-Schwarz); both hold for
-        every q. ``rkhs=False``: the O(n) L1 form only (the per-update check)."""
+        every q. ``rkhs=False``: the O(n) L1 form only (the per-update check).
+        """
         s, hp = self.structure, self.hyper
         B = np.zeros((s.N, s.N))
         rk = self.rkhs_sq() if rkhs else None
@@ -396,8 +452,11 @@ class Posterior:
         return B
 
     def paper_bound(self) -> np.ndarray:
-        """Theorem 1 bound with the sf^2 kernel bound, (N, N) model units:
-        ``sf2_mn * sqrt(n) |x|_inf |dy_m| / s_eps^2``."""
+        """
+        Theorem 1 bound with the sf^2 kernel bound.
+
+        (N, N) model units: ``sf2_mn * sqrt(n) |x|_inf |dy_m| / s_eps^2``.
+        """
         s, hp = self.structure, self.hyper
         xinf = float(np.abs(self.X).max())
         B = np.zeros((s.N, s.N))

@@ -1,4 +1,5 @@
-"""The online estimator's message path: validate, learn, answer (no rclpy).
+"""
+The online estimator's message path: validate, learn, answer (no rclpy).
 
 ``process`` validates one measurement, maybe learns from it (``selection``) with the model's
 O(n^2) ``update``, decides whether a refit job is due, and answers with the estimate at the
@@ -18,14 +19,14 @@ updates) is re-proven by a 'recertify' job, at most every ``refit_period_s / 4``
 """
 from __future__ import annotations
 
+from collections import deque
 import copy
 import dataclasses
+from dataclasses import dataclass
 import math
 import os
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass
 from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -35,10 +36,10 @@ from dgp_ros.gp import load_model, make_model, passive_tolerance
 from dgp_ros.gp.means import make_mean
 from dgp_ros.gp.passivity import policy_class
 
-from .config import EstimatorConfig, check_model_path
+from .config import check_model_path, EstimatorConfig
 from .health import Health
 from .selection import Buffer, Selector
-from .worker import RefitJob, RefitResult, provable, run_job
+from .worker import provable, RefitJob, RefitResult, run_job
 
 __all__ = ['OnlineEstimator', 'Estimate']
 
@@ -53,7 +54,8 @@ _POWER_WINDOW, _POWER_MIN = 1000, 100
 
 @dataclass
 class Estimate:
-    """The estimate answering one measurement (model units; N joints).
+    """
+    The estimate answering one measurement (model units; N joints).
 
     qd, tau : (N,) the measured velocity and effort; tau_hat : (N,) the damping force estimate at
     qd; stddev : (N,) its posterior standard deviation; D : (N, N) damping matrix (None for the
@@ -81,7 +83,8 @@ class Estimate:
 
 
 class OnlineEstimator:
-    """Online D-GP estimator (module docstring).
+    """
+    Online D-GP estimator (module docstring).
 
     Parameters
     ----------
@@ -90,6 +93,7 @@ class OnlineEstimator:
         Builds candidate models (default ``dgp_ros.gp.make_model``); injectable for tests.
     model_loader : callable ``(path) -> model``
         Reads ``model_path`` (default ``dgp_ros.gp.load_model``).
+
     """
 
     #: longest catch-up replayed sample by sample; a longer backlog gets a fresh snapshot refit
@@ -111,6 +115,8 @@ class OnlineEstimator:
         self._lock = threading.RLock()
         self._thread: Optional[threading.Thread] = None
         self._generation = 0
+        self._want_stddev = True
+        self._want_damping = True
         self.load_error = ''
         self._inverse = make_inverse_dynamics(
             self.config.inverse_dynamics, robot_description=self.config.robot_description,
@@ -155,13 +161,26 @@ class OnlineEstimator:
         if not keep_health:
             self.health = Health()
 
+    def set_outputs(self, stddev: bool = True, damping: bool = True) -> None:
+        """
+        Which optional parts of an estimate to compute (the node: what has subscribers).
+
+        Without ``stddev`` an Estimate's stddev is NaN; without ``damping`` its D is None. The
+        force, its power and its passivity are always computed.
+        """
+        self._want_stddev, self._want_damping = bool(stddev), bool(damping)
+
     @property
     def trained(self) -> bool:
         return self._model is not None
 
     @property
     def model(self):
-        """The current model (None before the first fit). Do not mutate it."""
+        """
+        Get the current model, None before the first fit.
+
+        Do not mutate it.
+        """
         return self._model
 
     @property
@@ -169,7 +188,7 @@ class OnlineEstimator:
         return None if self._names is None else list(self._names)
 
     def samples(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Copies of the buffered samples (Qd, Tau), (n, N) each, oldest first."""
+        """Return copies of the buffered samples, (Qd, Tau), (n, N) each, oldest first."""
         with self._lock:
             if self._buf is None:
                 return np.zeros((0, self._N or 0)), np.zeros((0, self._N or 0))
@@ -182,7 +201,8 @@ class OnlineEstimator:
     # ------------------------------------------------------------------ messages
     def process(self, stamp_s: float, names: Sequence[str], velocity, effort,
                 position=None) -> Optional[Estimate]:
-        """Validate one measurement, learn from it, return the estimate at its velocity.
+        """
+        Validate one measurement, learn from it, return the estimate at its velocity.
 
         Never raises on bad input: returns None and counts the rejection reason.
         """
@@ -234,10 +254,13 @@ class OnlineEstimator:
         return est
 
     def _learning_time(self, stamp: float) -> float:
-        """The time learning decisions use (s): the message stamp, unless stamps stopped
-        advancing (``STALLED_STAMPS`` equal stamps in a row: a driver that leaves header.stamp
-        at 0 or constant); then the arrival time, with a WARN. Answers keep the message's own
-        stamp either way."""
+        """
+        Return the time learning decisions use (s).
+
+        The message stamp, unless stamps stopped advancing (``STALLED_STAMPS`` equal stamps in a
+        row: a driver that leaves header.stamp at 0 or constant); then the arrival time, with a
+        WARN. Answers keep the message's own stamp either way.
+        """
         advancing = self._raw_last_stamp is not None and stamp > self._raw_last_stamp
         self._raw_last_stamp = stamp
         if self._arrival_t0 is None:
@@ -255,8 +278,12 @@ class OnlineEstimator:
         return time.monotonic() - self._arrival_t0
 
     def _validate(self, names, velocity, effort, position):
-        """One message's content: (names, qd, tau, q) in the configured joint order (``q`` None
-        without inverse dynamics), or the rejection reason (a string)."""
+        """
+        Validate one message.
+
+        One message's content: (names, qd, tau, q) in the configured joint order (``q`` None
+        without inverse dynamics), or the rejection reason (a string).
+        """
         if velocity is None or effort is None:
             return 'empty'
         try:
@@ -305,8 +332,12 @@ class OnlineEstimator:
         return names, v, e, p
 
     def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q) -> Tuple[bool, list]:
-        """Offer the sample for learning (rate limit), through the friction residual front end
-        when there is inverse dynamics. Returns (taken, completed residual samples)."""
+        """
+        Offer the sample for learning (rate limit).
+
+        It goes through the friction residual front end when there is inverse dynamics. Returns
+        (taken, completed residual samples).
+        """
         h, sel = self.health, self._selector
         want = not sel.rate_limited(self.config, stamp)
         if want:
@@ -342,7 +373,6 @@ class OnlineEstimator:
         self._selector.additions += 1
         self._seq += 1
         h.samples_added += 1
-        self._prior = None
         if self.refit_running():
             # the incumbent's answer before it learns the sample: the fair opponent of a
             # candidate that has not seen it either (see _held_out)
@@ -364,7 +394,9 @@ class OnlineEstimator:
     # ------------------------------------------------------------------ estimates
     def _prior_estimate(self, qd: np.ndarray):
         """(tau, stddev, D) of the passive prior fitted to the buffer: diag(m_d(qd)) qd."""
-        if self._prior is None:
+        # refitted when the buffer changed by a tenth (a 7-joint friction prior costs ~15 ms:
+        # refitted on every learned sample it held the message path while the first fit ran)
+        if self._prior is None or self._seq >= self._prior[2] + max(1, self._prior[2] // 10):
             Q, T = self._buf.arrays() if self._buf is not None and self._buf.size else \
                 (np.zeros((0, self._N)), np.zeros((0, self._N)))
             cfg = self.config
@@ -375,8 +407,8 @@ class OnlineEstimator:
                 std = np.sqrt(np.mean(resid ** 2, axis=0)) if Q.shape[0] else np.zeros(self._N)
             except Exception:           # degenerate buffer: no prior damping at all
                 mean, std = make_mean('viscous', 'full').fit(Q[:0], T[:0]), np.zeros(self._N)
-            self._prior = (mean, std)
-        mean, std = self._prior
+            self._prior = (mean, std, self._seq)
+        mean, std, _ = self._prior
         q = qd[None, :]
         d = np.asarray(mean.diag(q), float)[0]
         tau = d * qd
@@ -388,9 +420,11 @@ class OnlineEstimator:
         source = 'prior'
         if self._model is not None:
             try:
-                tau_hat, var, D = self._model.predict_with_damping(qd[None, :])
+                tau_hat, var, D = self._model.predict_with_damping(
+                    qd[None, :], self._want_stddev, self._want_damping)
                 tau_hat = np.asarray(tau_hat, float)[0]
-                std = np.sqrt(np.maximum(np.asarray(var, float)[0], 0.0))
+                std = (np.sqrt(np.maximum(np.asarray(var, float)[0], 0.0)) if var is not None
+                       else np.full_like(tau_hat, np.nan))
                 D = None if D is None else np.asarray(D, float)[0]
                 source = 'model'
             except Exception as exc:
@@ -405,11 +439,16 @@ class OnlineEstimator:
                         added=added, processing_time_s=0.0)
 
     def _gate(self, qd, tau_hat, std, D, source):
-        """The one place an answer is checked: finite, and passive beyond rounding (unless
-        passivity is 'none'); otherwise the passive prior, counted. Returns
-        (tau_hat, std, D, source, power) with ``power >= 0`` unless passivity is 'none'."""
+        """
+        Check an answer (the one place this is done).
+
+        Finite, and passive beyond rounding (unless passivity is 'none'); otherwise the passive
+        prior, counted. Returns (tau_hat, std, D, source, power) with ``power >= 0`` unless
+        passivity is 'none'.
+        """
         h = self.health
-        finite = (np.all(np.isfinite(tau_hat)) and np.all(np.isfinite(std)) and
+        finite = (np.all(np.isfinite(tau_hat)) and
+                  (not self._want_stddev or np.all(np.isfinite(std))) and
                   (D is None or np.all(np.isfinite(D))))
         if not finite:
             h.nonfinite_outputs += 1
@@ -440,11 +479,11 @@ class OnlineEstimator:
 
     # ------------------------------------------------------------------ refit jobs
     def _hypers_outgrown(self) -> bool:
-        """The buffer has at least doubled since the hyper-parameters were learned."""
+        """Tell whether the buffer has at least doubled since the hyper-parameters were learned."""
         return 0 < self._opt_n and self._buf.size >= 2 * self._opt_n
 
     def _next_job(self, stamp: float) -> Optional[RefitJob]:
-        """The one decision (under the lock) of what the worker does next, if anything."""
+        """Make the one decision (under the lock) of what the worker does next, if anything."""
         cfg = self.config
         if self._buf is None or self._buf.size < cfg.min_samples or self.refit_running():
             return None
@@ -525,9 +564,13 @@ class OnlineEstimator:
         return self._integrate(run_job(job, self._factory))
 
     def _integrate(self, res: RefitResult) -> Tuple[bool, str]:
-        """Replay the samples that arrived during the job into the candidate, swap it in (if it
+        """
+        Finish a refit job.
+
+        Replay the samples that arrived during the job into the candidate, swap it in (if it
         may serve), and record the outcome. Long backlogs are absorbed by a fixed-hyper refit on
-        a fresh snapshot; the lock is held only to read the backlog and for the swap."""
+        a fresh snapshot; the lock is held only to read the backlog and for the swap.
+        """
         job, model, ok, why = res.job, res.model, res.ok, res.reason
         cfg, h = job.config, self.health
         t0 = time.perf_counter() - res.seconds
@@ -601,8 +644,12 @@ class OnlineEstimator:
     MAX_RETRIES = 3
 
     def _held_out(self, model, seq: int) -> Tuple[bool, str]:
-        """Compare the candidate with the current model on the samples that arrived while it was
-        fitted (it has not seen them; there are none in sync mode)."""
+        """
+        Compare the candidate with the current model.
+
+        The comparison is on the samples that arrived while it was fitted (it has not seen them;
+        there are none in sync mode).
+        """
         with self._lock:
             newer = [(q, t, b) for (s, q, t, b) in self._pending if s > seq and b is not None]
         if len(newer) < 10:
@@ -623,7 +670,7 @@ class OnlineEstimator:
         if e_new > self.HELD_OUT_FACTOR * e_old + floor:
             return False, (f'sanity check: error on the {len(newer)} samples that arrived '
                            f'during the fit {e_new / max(e_old, 1e-300):.1f} x the current '
-                           f'model\'s')
+                           f"model's")
         return True, ''
 
     def _swap(self, job: RefitJob, model) -> None:
@@ -652,7 +699,11 @@ class OnlineEstimator:
             self._init_state()
 
     def check_reconfigure(self, config: EstimatorConfig) -> None:
-        """ValueError (with the reason) if ``reconfigure(config)`` would fail; changes nothing."""
+        """
+        Raise ValueError (with the reason) if ``reconfigure(config)`` would fail.
+
+        Changes nothing.
+        """
         config = dataclasses.replace(config).validate()
         if self._N is not None:
             config.check_dimension(self._N)
@@ -692,10 +743,12 @@ class OnlineEstimator:
             return f'{", ".join(changed)} changed: model dropped, refit on the next sample'
 
     def save(self, path: Optional[str] = None) -> str:
-        """Save the current model atomically to ``path`` (default ``model_path``); returns it.
+        """
+        Save the current model atomically to ``path`` (default ``model_path``); returns it.
 
         The model is copied under the lock and written outside it, so the message path never
-        waits for the disk."""
+        waits for the disk.
+        """
         path = path or self.config.model_path
         if not path:
             raise ValueError('no path given and model_path is not set')
@@ -737,7 +790,8 @@ class OnlineEstimator:
 
     # ------------------------------------------------------------------ diagnostics
     def diagnostics(self) -> dict:
-        """Everything the node publishes on /diagnostics, as a dict.
+        """
+        Everything the node publishes on /diagnostics, as a dict.
 
         ``level`` is OK/WARN/ERROR (0/1/2, diagnostic_msgs values) and ``message`` joins the
         reasons (see ``health.Health.status``).
@@ -747,31 +801,32 @@ class OnlineEstimator:
             fill = 0 if self._buf is None else self._buf.size
             last = self._last_est
             certifies = policy_class(self.config.passivity).certifies
-            d = dict(
-                model=self.config.model, passivity=self.config.passivity,
-                trained=self._model is not None,
-                certified=bool(cert.certified) if cert is not None else False,
-                certificate_stale=bool(cert.stale) if cert is not None else False,
-                margin=float(cert.margin) if cert is not None else float('nan'),
-                method=str(cert.method) if cert is not None else '',
-                domain=str(cert.domain) if cert is not None else '',
-                buffer_fill=fill, buffer_size=self.config.buffer_size,
-                refit_running=self.refit_running(),
-                measured_power=last.measured_power if last else float('nan'),
-                estimated_power=last.power if last else float('nan'),
-                last_source=last.source if last else '',
-                load_error=self.load_error, hyper_samples=self._opt_n,
-                pending_samples=len(self._pending),
-                negative_power_fraction=self.negative_power_fraction(),
-                residual_delay_s=self._front.delay_s, accel_filter_restarts=self._front.restarts,
-                accel_filter_dropped=self._front.dropped,
-                learning_clock='arrival' if self._arrival_t0 is not None else 'stamp',
-            )
+            d = {
+                'model': self.config.model, 'passivity': self.config.passivity,
+                'trained': self._model is not None,
+                'certified': bool(cert.certified) if cert is not None else False,
+                'certificate_stale': bool(cert.stale) if cert is not None else False,
+                'margin': float(cert.margin) if cert is not None else float('nan'),
+                'method': str(cert.method) if cert is not None else '',
+                'domain': str(cert.domain) if cert is not None else '',
+                'buffer_fill': fill, 'buffer_size': self.config.buffer_size,
+                'refit_running': self.refit_running(),
+                'measured_power': last.measured_power if last else float('nan'),
+                'estimated_power': last.power if last else float('nan'),
+                'last_source': last.source if last else '',
+                'load_error': self.load_error, 'hyper_samples': self._opt_n,
+                'pending_samples': len(self._pending),
+                'negative_power_fraction': self.negative_power_fraction(),
+                'residual_delay_s': self._front.delay_s,
+                'accel_filter_restarts': self._front.restarts,
+                'accel_filter_dropped': self._front.dropped,
+                'learning_clock': 'arrival' if self._arrival_t0 is not None else 'stamp',
+            }
             d.update(self.health.counters())
-            state = dict(trained=d['trained'], fill=fill, min_samples=self.config.min_samples,
-                         certifies=certifies, certified=d['certified'],
-                         stale=d['certificate_stale'], load_error=self.load_error,
-                         warnings=self._warnings())
+            state = {'trained': d['trained'], 'fill': fill, 'min_samples': self.config.min_samples,
+                     'certifies': certifies, 'certified': d['certified'],
+                     'stale': d['certificate_stale'], 'load_error': self.load_error,
+                     'warnings': self._warnings()}
             d['level'], d['message'] = self.health.status(state)
             return d
 
@@ -780,7 +835,7 @@ class OnlineEstimator:
         out = []
         if self._arrival_t0 is not None:
             out.append('message stamps do not advance (header.stamp constant or 0): learning '
-                       'uses the arrival time; fix the driver\'s stamps')
+                       "uses the arrival time; fix the driver's stamps")
         if self._stalled():
             out.append(f'learning stalled: no sample learned for '
                        f'{self._last_stamp - self._last_added_t:.0f} s while the velocities '
@@ -798,8 +853,12 @@ class OnlineEstimator:
         return out
 
     def _stalled(self) -> bool:
-        """No sample learned for ``STALL_WARN_S`` of learning time although the recent
-        candidates spread over many novelty distances (not a hovering state)."""
+        """
+        Tell whether learning is stalled.
+
+        No sample learned for ``STALL_WARN_S`` of learning time although the recent
+        candidates spread over many novelty distances (not a hovering state).
+        """
         if self._last_added_t is None or self._last_stamp is None or self._buf is None or \
                 self._last_stamp - self._last_added_t < self.STALL_WARN_S or \
                 len(self._recent_q) < 10:
@@ -809,8 +868,11 @@ class OnlineEstimator:
         return bool(spread.max() > 10.0 * max(self.config.selection_min_distance, 1e-3))
 
     def negative_power_fraction(self) -> Optional[float]:
-        """Fraction of the recent learned samples with ``qd . target < 0`` (None before enough
-        samples were seen to decide)."""
+        """
+        Fraction of the recent learned samples with ``qd .
+
+        target < 0`` (None before enough samples were seen to decide).
+        """
         p = self._learned_power
         if len(p) < _POWER_MIN:
             return None

@@ -5,7 +5,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from dgp_ros.gp import (ArdGP, DiagDGP, FullDGP, copositivity_margin, load_model, make_model,
+from dgp_ros.gp import (ArdGP, copositivity_margin, DiagDGP, FullDGP, load_model, make_model,
                         prior_mean_diag, se_ard)
 from dgp_ros.gp.hyper import LmlObjective
 from dgp_ros.gp.kernels import Structure
@@ -26,14 +26,19 @@ def _data(n=40, N=2, seed=0):
 
 def _hp(kind, N, rng):
     E = N * N if kind == 'full' else N
-    return {'log_sf2': np.log(rng.uniform(0.2, 2.0, E)), 'log_ls': np.log(rng.uniform(0.5, 2, (E, N))),
+    return {'log_sf2': np.log(rng.uniform(0.2, 2.0, E)),
+            'log_ls': np.log(rng.uniform(0.5, 2, (E, N))),
             'log_sn2': np.log(rng.uniform(0.01, 0.1, N)), 'sx': np.ones(N), 'sy': np.ones(N),
             'mean': rng.uniform(0.5, 2.0, N)}
 
 
 def _dense_reference(kind, hp, X, Y, Xs):
-    """The paper's stacked formulation: one (nN x nN) GP over the stacked force vector and the
-    posterior damping matrix from the cross-covariance Cov(d_mn(q*), tau(q_i))."""
+    """
+    Compute the paper's stacked formulation.
+
+    One (nN x nN) GP over the stacked force vector and the posterior damping matrix from the
+    cross-covariance Cov(d_mn(q*), tau(q_i)).
+    """
     n, N = X.shape
     elems = [(m, k) for m in range(N) for k in range(N)] if kind == 'full' else \
         [(k, k) for k in range(N)]
@@ -267,14 +272,19 @@ def test_copositivity_margin_is_exact_against_sampling():
         sampled = np.einsum('ij,jk,ik->i', Z, A[k], Z).min()
         assert marg[k] <= sampled + 1e-12          # a lower bound of every sample...
         assert sampled - marg[k] < 0.05            # ...and tight
-    assert copositivity_margin(np.array([[1.0, -1.0], [-1.0, 1.0]])) == pytest.approx(0.0, abs=1e-12)
+    assert copositivity_margin(np.array([[1.0, -1.0], [-1.0, 1.0]])) == \
+        pytest.approx(0.0, abs=1e-12)
     assert copositivity_margin(np.array([[0.0, 1.0], [1.0, 0.0]])) >= 0   # copositive, not PSD
 
 
 @pytest.mark.parametrize('window', [None, 7, 40])
 def test_window_cholesky_equals_fresh_factorization(window):
-    """In-place append / drop-oldest (buffer growth and block moves included) against a fresh
-    Cholesky of the same kernel window, factor and alpha = K^-1 r."""
+    """
+    Check the in-place append and drop-oldest against a fresh Cholesky.
+
+    In-place append / drop-oldest (buffer growth and block moves included) against a fresh
+    Cholesky of the same kernel window, factor and alpha = K^-1 r.
+    """
     from scipy.linalg import cho_solve, cholesky
 
     from dgp_ros.gp._chol import WindowCholesky
@@ -325,8 +335,12 @@ def test_window_cholesky_clamps_an_exact_duplicate():
 @pytest.mark.parametrize('kind', ['full', 'diag', 'ard'])
 @pytest.mark.parametrize('passivity', ['none', 'projected'])
 def test_predict_with_damping_equals_separate_calls_and_batch_path(kind, passivity):
-    """The one-pass per-message path (all element kernels at once, exact differences) agrees
-    with predict + damping_matrix, and with the large-batch GEMM path."""
+    """
+    Check the one-pass per-message path against the other paths.
+
+    The one-pass per-message path (all element kernels at once, exact differences) agrees
+    with predict + damping_matrix, and with the large-batch GEMM path.
+    """
     Q, T = _data(60)
     m = make_model(kind, passivity=passivity).fit(Q, T)
     Qs = np.random.default_rng(3).uniform(-3, 3, (25, 2))
@@ -346,8 +360,12 @@ def test_predict_with_damping_equals_separate_calls_and_batch_path(kind, passivi
 
 
 def test_rkhs_norms_kept_from_the_factorization_equal_a_rebuild():
-    """The certificate's RKHS norms are taken from the element kernels of the fit; they must equal
-    a^T K_e a rebuilt from scratch (and be recomputed, not reused, after an update)."""
+    """
+    The certificate's RKHS norms are taken from the element kernels of the fit.
+
+    They must equal a^T K_e a rebuilt from scratch (and be recomputed, not reused, after an
+    update).
+    """
     Q, T = _data(60, N=3)
     m = FullDGP(passivity='none', n_restarts=0).fit(Q, T)
     p = m.posterior_
@@ -379,9 +397,13 @@ def test_get_and_set_params_round_trip_without_refit():
 
 
 def test_friction_prior_stays_bounded_without_slow_samples():
-    """A joint seen only at |v| in [0.24, 0.5] one way (the start of a trajectory): the Stribeck
-    term must not explode towards qd = 0, and no bias is learned (it cannot be told apart from
-    Coulomb friction); found by bench/hostile.py (128 N m towards qd = 0 from 1 N m of data)."""
+    """
+    A joint seen only at |v| in [0.24, 0.5] one way (the start of a trajectory).
+
+    The Stribeck term must not explode towards qd = 0, and no bias is learned (it cannot be told
+    apart from Coulomb friction); found by bench/hostile.py (128 N m towards qd = 0 from 1 N m of
+    data).
+    """
     from dgp_ros.gp.means import make_mean
     rng = np.random.default_rng(0)
     for seed in range(20):
@@ -403,3 +425,29 @@ def test_friction_prior_learns_a_bias_once_both_directions_are_seen():
     tau = 0.8 * v + 0.4 * np.tanh(v / 0.02) + np.array([-0.2, 0.3]) + rng.normal(0, 0.02, v.shape)
     m = make_mean('friction+stribeck', 'full', bias=True).fit(v, tau)
     np.testing.assert_allclose(m.bias, [-0.2, 0.3], atol=0.03)
+
+
+@pytest.mark.parametrize('kind', ['full', 'diag', 'ard'])
+@pytest.mark.parametrize('passivity', ['none', 'projected', 'certified'])
+def test_the_lean_message_path_equals_the_full_one(kind, passivity):
+    """Without variance (what the node computes when nobody subscribes to the stddev) the
+    force and the damping matrix come from one einsum over the element kernels: equal to the
+    per-output loop, for 1..16 queries, also after updates and with switched-off elements."""
+    if kind == 'ard' and passivity == 'certified':
+        pytest.skip('ARD cannot be certified')
+    Q, T = _data(60)
+    m = make_model(kind, passivity=passivity).fit(Q, T)
+    rng = np.random.default_rng(5)
+    for step in range(3):
+        for k in (1, 5, 16):
+            Qs = rng.uniform(-3, 3, (k, 2))
+            tau, var, D = m.predict_with_damping(Qs)
+            t2, v2, D2 = m.predict_with_damping(Qs, return_var=False)
+            assert v2 is None
+            scale = max(np.abs(tau).max(), 1e-300)
+            assert np.max(np.abs(t2 - tau)) <= 1e-12 * scale
+            if kind != 'ard':
+                assert np.max(np.abs(D2 - D)) <= 1e-12 * max(np.abs(D).max(), 1e-300)
+            _, _, D3 = m.predict_with_damping(Qs, return_var=False, return_damping=False)
+            assert D3 is None
+        m.update(rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 2))
