@@ -1,4 +1,5 @@
-"""ament_python packaging for dgp_ros.
+"""
+ament_python packaging for dgp_ros.
 
 The same file serves two installs:
 - ``colcon build`` in a ROS 2 Jazzy workspace (setup.cfg puts the executables in
@@ -25,7 +26,8 @@ setup(
     zip_safe=True,
     maintainer='dgp_ros maintainers',
     maintainer_email='maintainers@dgp-ros.org',
-    description='Dissipative Gaussian Processes for passive online damping identification (ROS 2).',
+    description=('Dissipative Gaussian Processes for passive online damping identification '
+                 '(ROS 2).'),
     license='Apache-2.0',
     tests_require=['pytest'],
     entry_points={

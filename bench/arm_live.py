@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""A 7-joint arm at 1 kHz, live: dgp-play -> estimator node -> a listener, over real DDS.
+"""
+A 7-joint arm at 1 kHz, live: dgp-play -> estimator node -> a listener, over real DDS.
 
 A simulated Panda (``dgp_ros.dynamics.simulate_arm``: raw torques with gravity and inertia, 1 kHz
 jittered stamps, a finger joint in the messages like a real /joint_states) is written as a bag of
@@ -171,11 +172,13 @@ def run(a, work: str) -> dict:
     X = np.random.default_rng(0).uniform(-3, 3, (100_000, len(names)))
     neg = int(np.sum(np.einsum('ij,ij->i', X, model.predict(X)) < 0))
     return {'published': cut, 'received': len(meas), 'answers': len(ans), 'paired': len(paired),
-            'answered': len(paired) / cut, 'lat_median': float(np.median(lat)) if len(lat) else None,
+            'answered': len(paired) / cut,
+            'lat_median': float(np.median(lat)) if len(lat) else None,
             'lat_p99': float(np.percentile(lat, 99)) if len(lat) else None,
             'play_s': t_play, 'est_rc': rc, 'diag': diag, 'nmse': nmse.tolist(),
             'nmse_sigmoid': nmse_sig.tolist(), 'negative_power': neg, 'names': names,
-            'model': a.model or PARAMS['model'].default, 'prior': a.prior or PARAMS['prior'].default,
+            'model': a.model or PARAMS['model'].default,
+            'prior': a.prior or PARAMS['prior'].default,
             'friction_rms': np.sqrt(np.mean(truth ** 2, axis=0)).tolist()}
 
 
@@ -189,13 +192,14 @@ def section(a, r: dict, wall: float) -> str:
     lines = [C.header_lines('A 7-joint arm at 1 kHz, live (dgp-play -> estimator node)',
                             'bench/arm_live.py', a.quick, wall), '',
              f'Simulated Panda, {r["published"]} raw /joint_states messages (60 % of '
-             f'{a.duration:g} s at 1 kHz, jittered stamps, a finger joint too) played at real time '
-             f'by `dgp-play` into `estimator` (`model={r["model"]}`, `prior={r["prior"]}`, '
+             f'{a.duration:g} s at 1 kHz, jittered stamps, a finger joint too) played at real '
+             f'time by `dgp-play` into `estimator` (`model={r["model"]}`, `prior={r["prior"]}`, '
              f'`inverse_dynamics=urdf`, other parameters default), all on this '
              f'2-core machine with the listener. Latency: listener receives the measurement -> '
              f'listener receives the answer. Held out: the saved model on the last 40 % of the '
              f'trajectory at the true velocities against the true friction; sigmoid: '
-             f'Makkar et al. per joint by least squares on the residual the estimator learned from.',
+             f'Makkar et al. per joint by least squares on the residual the estimator learned '
+             f'from.',
              '']
     rows = [['answered (of published)', f'{100 * r["answered"]:.2f} %'],
             ['received by the listener', f'{r["received"]} of {r["published"]}'],
@@ -221,7 +225,8 @@ def section(a, r: dict, wall: float) -> str:
             f'{C.fmt(r["lat_p99"])} ms'],
            ['held-out NMSE <= 0.5 x sigmoid on every joint whose friction exceeds the noise',
             'met' if all(x <= 0.5 * y for x, y, f in zip(r['nmse'], r['nmse_sigmoid'],
-                                                         r['friction_rms']) if f > robot_arms_noise())
+                                                         r['friction_rms'])
+                         if f > robot_arms_noise())
             else '**missed**',
             ', '.join(C.fmt(x / y) for x, y in zip(r['nmse'], r['nmse_sigmoid']))]]
     lines += ['', C.md_table(['target', 'status', 'measured'], tgt)]

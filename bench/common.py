@@ -1,4 +1,5 @@
-"""Shared helpers of the benchmark scripts (bench/*.py).
+"""
+Shared helpers of the benchmark scripts (bench/*.py).
 
 Every script:
 
@@ -67,7 +68,8 @@ def markers(name: str):
 
 
 def write_section(out: str, name: str, body: str) -> str:
-    """Replace the section ``name`` of ``out/BENCHMARKS.md`` by ``body`` (create file/section).
+    """
+    Replace the section ``name`` of ``out/BENCHMARKS.md`` by ``body`` (create file/section).
 
     Only the text between the section's BEGIN/END markers changes; a new section is appended.
     The file is locked while it is rewritten (scripts may run concurrently). Returns the path.
@@ -159,8 +161,12 @@ def machine_info() -> dict:
 
 
 def header_lines(title: str, script: str, quick: bool, seconds: Optional[float] = None) -> str:
-    """Section header: title, the command that generated it (``script``, plus ``--quick`` in
-    quick mode), machine, wall time."""
+    """
+    Section header.
+
+    Title, the command that generated it (``script``, plus ``--quick`` in quick mode), machine,
+    wall time.
+    """
     mi = machine_info()
     script = script + (' --quick' if quick else '')
     mode = ('quick mode: CI smoke test, small sizes, not the reference numbers' if quick
@@ -177,7 +183,7 @@ def header_lines(title: str, script: str, quick: bool, seconds: Optional[float] 
 
 # ----------------------------------------------------------------------------- numbers
 def nmse(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Normalized MSE per output: mean((pred - truth)^2) / var(truth). (N,)"""
+    """Return the normalized MSE per output, (N,): mean((pred - truth)^2) / var(truth)."""
     pred, truth = np.asarray(pred, float), np.asarray(truth, float)
     return np.mean((pred - truth) ** 2, axis=0) / np.var(truth, axis=0)
 
@@ -218,7 +224,8 @@ def md_table(headers: Sequence[str], rows: Iterable[Sequence]) -> str:
 
 
 def timeit(fn: Callable, repeat: int = 5, min_time: float = 0.0, number: int = 1) -> float:
-    """Median wall time (s) of ``fn()`` over ``repeat`` runs of ``number`` calls each.
+    """
+    Median wall time (s) of ``fn()`` over ``repeat`` runs of ``number`` calls each.
 
     The median is robust to the other jobs on the shared machine. With ``min_time`` > 0,
     ``number`` grows until one run takes at least that long.
@@ -256,10 +263,14 @@ def power(Q: np.ndarray, Tau: np.ndarray) -> np.ndarray:
 
 
 def negative_power_count(model, Q: np.ndarray, chunk: int = 20000, rel_tol: float = 1e-12):
-    """Evaluate ``model.predict`` at Q (k, N) in chunks; return (strict, tol, min_rel) where
-    ``strict`` counts ``q^T tau_hat < 0`` exactly as computed in floating point, ``tol`` counts
-    ``q^T tau_hat < -rel_tol |q| |tau_hat|`` (beyond round-off) and ``min_rel`` is the smallest
-    ``q^T tau_hat / (|q| |tau_hat|)`` seen (the cosine of the worst angle)."""
+    """
+    Evaluate ``model.predict`` at Q (k, N) in chunks.
+
+    Return (strict, tol, min_rel) where ``strict`` counts ``q^T tau_hat < 0`` exactly as computed
+    in floating point, ``tol`` counts ``q^T tau_hat < -rel_tol |q| |tau_hat|`` (beyond round-off)
+    and ``min_rel`` is the smallest ``q^T tau_hat / (|q| |tau_hat|)`` seen (the cosine of the worst
+    angle).
+    """
     strict = tol = 0
     min_rel = np.inf
     for s in range(0, Q.shape[0], chunk):
@@ -276,15 +287,23 @@ def negative_power_count(model, Q: np.ndarray, chunk: int = 20000, rel_tol: floa
 
 
 def random_points(rng, lo, hi, k: int, factor: float = 1.0) -> np.ndarray:
-    """k uniform points in the box centred on (lo+hi)/2 with half-widths factor*(hi-lo)/2."""
+    """
+    Return ``k`` uniform points in a box.
+
+    The box is centred on (lo+hi)/2 with half-widths factor*(hi-lo)/2.
+    """
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     c, h = 0.5 * (lo + hi), 0.5 * (hi - lo) * factor
     return c + h * rng.uniform(-1.0, 1.0, (k, lo.size))
 
 
 def far_points(rng, lo, hi, k: int, factor: float = 100.0) -> np.ndarray:
-    """k uniform points of the box ``factor`` x the data box, outside 2x the data box
-    ("far outside the data")."""
+    """
+    Return ``k`` uniform points far outside the data.
+
+    k uniform points of the box ``factor`` x the data box, outside 2x the data box
+    ("far outside the data").
+    """
     out = []
     need = k
     while need > 0:
@@ -306,13 +325,16 @@ KIND_COLOR = {'ard': 'C0', 'diag': 'C1', 'full': 'C2'}
 
 
 def modes_for(kind: str) -> tuple:
-    """The passivity modes of a model kind, from the registry (dgp_ros.gp.passivity)."""
+    """Return the passivity modes of a model kind, from the registry (dgp_ros.gp.passivity)."""
     from dgp_ros.gp import modes_for as _modes
     return _modes(kind)
 
 
 def fit_all_modes(kind: str, Q, T, modes: Optional[Sequence[str]] = None, **kw) -> dict:
-    """Fit ``kind`` once with hyper-parameter optimization (passivity 'none'), then every other
+    """
+    Fit ``kind`` in every passivity mode, optimizing the hyper-parameters once.
+
+    Fit ``kind`` once with hyper-parameter optimization (passivity 'none'), then every other
     passivity mode at those hyper-parameters (``fit(optimize=False)``: the same optimum, the
     mode's enforcement applied after it, as ``fit(optimize=True)`` in that mode does).
 
@@ -337,7 +359,8 @@ def cert_summary(model) -> dict:
     c = model.certificate()
     return {'certified': bool(c.certified), 'margin': float(c.margin), 'method': str(c.method),
             'scale': float(c.correction_scale),
-            'seconds': float(c.details.get('seconds', float('nan'))) if c.details else float('nan'),
+            'seconds': (float(c.details.get('seconds', float('nan'))) if c.details
+                        else float('nan')),
             'domain': c.domain}
 
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Hostile input: the adversarial trial of the hardening issue (issue 18), repeatable by one
-command.
+"""
+Hostile input: the adversarial trial of the hardening issue (issue 18), repeatable by one command.
 
     python bench/hostile.py [--quick] [--out DIR] [--no-live]
 
@@ -57,14 +57,14 @@ import subprocess
 import sys
 import tempfile
 import time
-import zipfile
 from typing import Dict, List, Optional
+import zipfile
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
-from common import REPO, fmt, header_lines, log, md_table  # noqa: E402
+from common import fmt, header_lines, log, md_table, REPO  # noqa: E402
 
 SECTION = 'hostile_input'
 SCRIPT = 'python bench/hostile.py'
@@ -81,7 +81,7 @@ EPS = np.finfo(float).eps
 # ----------------------------------------------------------------------------- the document
 @contextlib.contextmanager
 def _doc(name: str = DOC_NAME, header: str = DOC_HEADER):
-    """common's section writer/reader, pointed at another file of the same directory."""
+    """Open ``common``'s section writer/reader, pointed at another file of the same directory."""
     old = common.DOC_NAME, common.DOC_HEADER
     common.DOC_NAME, common.DOC_HEADER = name, header
     try:
@@ -106,8 +106,12 @@ _DOMAIN_LOCK = []
 
 
 def claim_domain_id() -> int:
-    """A random ROS domain id in 1..101 that no test session / other run holds (the lock
-    files of test/conftest.py), held until this process exits."""
+    """
+    Claim a ROS domain id for this run.
+
+    A random ROS domain id in 1..101 that no test session / other run holds (the lock
+    files of test/conftest.py), held until this process exits.
+    """
     ids = list(range(1, 102))
     random.SystemRandom().shuffle(ids)
     for i in ids:
@@ -134,7 +138,7 @@ def isolate_dds() -> int:
 
 
 def proc_status(key: str, pid='self') -> float:
-    """A ``/proc/<pid>/status`` field in MiB (VmRSS, VmHWM); NaN if unreadable."""
+    """Read a ``/proc/<pid>/status`` field in MiB (VmRSS, VmHWM); NaN if unreadable."""
     try:
         with open(f'/proc/{pid}/status') as f:
             for line in f:
@@ -178,8 +182,12 @@ class Sandbox:
         return os.path.join(self.decoys, name)
 
     def snapshot(self) -> dict:
-        """{path: (kind, ino, size, mtime_ns, sha256)} of the sandbox's inputs and decoys (not
-        the models/scratch/logs directories, which the estimator may write), plus devices."""
+        """
+        Fingerprint the sandbox.
+
+        {path: (kind, ino, size, mtime_ns, sha256)} of the sandbox's inputs and decoys (not
+        the models/scratch/logs directories, which the estimator may write), plus devices.
+        """
         out = {}
         for top in (self.decoys, self.outside, self.files, self.bags):
             for dp, dns, fns in os.walk(top):
@@ -229,7 +237,7 @@ class Good:
     def q(self, t):
         return np.array([np.sin(t), np.cos(0.7 * t), 0.5 * np.sin(0.3 * t + 1.0)])
 
-    def next(self):
+    def next(self):  # noqa: A003 (a method: it shadows nothing)
         t = self.t
         self.t += self.dt
         q = self.q(t)
@@ -280,8 +288,11 @@ class Tally:
 
 
 def feed(est, T: Tally, stamp, names, v, e, expect=None):
-    """One message through ``est.process``; checks and counts (see Tally). ``expect``: None
-    (either), 'answer', or a collection of acceptable rejection reasons."""
+    """
+    One message through ``est.process``; checks and counts (see Tally).
+
+    ``expect``: None (either), 'answer', or a collection of acceptable rejection reasons.
+    """
     h = est.health
     rej0 = dict(h.rejected)
     rec0 = h.messages_received
@@ -399,7 +410,7 @@ def _variants_stamps(t):
         ('back by 1 s', t - 1.0, 'answer'), ('back by 1000 s', max(t - 1000.0, 0.0), 'answer'),
         ('zero', 0.0, 'answer'), ('far future 1e12 s', 1e12, 'answer'),
         ('far future 2^31-1 s', float(2 ** 31 - 1), 'answer'), ('far future 1e300 s', 1e300,
-                                                                 'answer'),
+                                                                'answer'),
         ('negative -1 s', -1.0, S), ('negative -1e9 s', -1e9, S), ('NaN', float('nan'), S),
         ('+inf', float('inf'), S), ('-inf', float('-inf'), S), ('a string', 'abc', S),
         ('None', None, S), ('a list', [1.0], S), ('complex', 1j, S),
@@ -407,8 +418,11 @@ def _variants_stamps(t):
 
 
 def run_messages(cfg_kw: dict, sizes: dict, sandbox: Sandbox, seed: int = 0) -> dict:
-    """The message barrage on one estimator (one configuration). Returns tallies and the
-    learning checks."""
+    """
+    Run the message barrage on one estimator (one configuration).
+
+    Returns tallies and the learning checks.
+    """
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
     base = {'buffer_size': 200, 'min_samples': 20, 'refit_period_s': 10.0, 'refit_mode': 'sync'}
     base.update(cfg_kw)
@@ -571,7 +585,8 @@ def run_messages(cfg_kw: dict, sizes: dict, sandbox: Sandbox, seed: int = 0) -> 
                 'added_end': d['samples_added'], 'nmse_recovery': nm,
                 'max_abs_tau_after_outlier': float(max(np.abs(x.tau_hat).max()
                                                        for x in keep + rec)),
-                'level': d['level'], 'message': d['message'], 'learning_clock': d['learning_clock'],
+                'level': d['level'], 'message': d['message'],
+                'learning_clock': d['learning_clock'],
                 'trained': d['trained'], 'certified': d['certified'], 'method': d['method'],
                 'nonfinite_outputs': d['nonfinite_outputs'],
                 'passivity_fallbacks': d['passivity_fallbacks'], 'nmse_control': nm_ctrl,
@@ -594,8 +609,12 @@ def run_messages(cfg_kw: dict, sizes: dict, sandbox: Sandbox, seed: int = 0) -> 
 
 
 def run_outlier_scenario(cfg_kw: dict, sizes: dict, seed: int = 1) -> dict:
-    """The issue's finding 1 exactly: a trained estimator, one in-range outlier (|v| = 9999),
-    then 60 s of good data: learning goes on and the error stays small."""
+    """
+    Run the issue's finding 1 exactly.
+
+    A trained estimator, one in-range outlier (|v| = 9999), then 60 s of good data: learning goes
+    on and the error stays small.
+    """
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
     base = {'buffer_size': 200, 'min_samples': 20, 'refit_period_s': 10.0, 'refit_mode': 'sync'}
     base.update(cfg_kw)
@@ -648,8 +667,12 @@ def run_outlier_scenario(cfg_kw: dict, sizes: dict, seed: int = 1) -> dict:
 
 
 def run_stamp_scenario(cfg_kw: dict, n: int) -> dict:
-    """The issue's finding 6: every stamp 0 from the start (a driver that never sets them), then
-    the same number of messages with advancing stamps."""
+    """
+    Run the issue's finding 6.
+
+    Every stamp 0 from the start (a driver that never sets them), then the same number of messages
+    with advancing stamps.
+    """
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
     base = {'buffer_size': 200, 'min_samples': 20, 'refit_period_s': 10.0, 'refit_mode': 'sync'}
     base.update(cfg_kw)
@@ -677,9 +700,13 @@ def run_stamp_scenario(cfg_kw: dict, n: int) -> dict:
 
 
 def run_burst_scenario(cfg_kw: dict, warm: int, chunks: int, chunk: int) -> dict:
-    """Five consecutive in-range huge efforts (5e7 < max_abs_effort) on a trained estimator,
+    """
+    Run the burst scenario.
+
+    Five consecutive in-range huge efforts (5e7 < max_abs_effort) on a trained estimator,
     then good data in chunks: how far the answers go, how long until they recover, and what the
-    status says meanwhile."""
+    status says meanwhile.
+    """
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
     base = {'buffer_size': 200, 'min_samples': 20, 'refit_period_s': 10.0, 'refit_mode': 'sync'}
     base.update(cfg_kw)
@@ -721,8 +748,8 @@ def run_burst_scenario(cfg_kw: dict, warm: int, chunks: int, chunk: int) -> dict
     rec = next((r['seconds'] for r in rows
                 if r['nmse'] <= max(10 * r['nmse_control'], 0.05)), None)
     return {'label': f'{base.get("model", "full")}/{base.get("passivity", "projected")}',
-            'added_before': d0['samples_added'], 'rows': rows, 'recovered_after_s': rec, 'tally': T,
-            'learned': learned}
+            'added_before': d0['samples_added'], 'rows': rows, 'recovered_after_s': rec,
+            'tally': T, 'learned': learned}
 
 
 # ----------------------------------------------------------------------------- 2. parameters
@@ -789,9 +816,13 @@ def semantic_cases(sandbox: Sandbox) -> list:
 
 
 def run_params_inprocess(sandbox: Sandbox, quick: bool) -> dict:
-    """Every hostile value of every parameter through validate(), check_reconfigure() and
+    """
+    Run the parameter attacks in process.
+
+    Every hostile value of every parameter through validate(), check_reconfigure() and
     reconfigure() of a trained estimator (N = 3 seen, joints not configured); then per-joint
-    parameters whose length does not fit the joints, set before the first message."""
+    parameters whose length does not fit the joints, set before the first message.
+    """
     from dgp_ros.online import PARAMS, EstimatorConfig, OnlineEstimator
     cases = []      # (label, overrides, parameter named in the reason, validate may accept)
     for spec in PARAMS.values():
@@ -944,8 +975,11 @@ def _rearray(path, arrays, **changes):
 
 
 def _bomb(path, arrays, member: str, inflated: int):
-    """A model file whose ``member`` inflates to ``inflated`` bytes (zeros, streamed: the
-    file stays small)."""
+    """
+    Write a model file whose ``member`` inflates to ``inflated`` bytes.
+
+    Zeros, streamed: the file stays small.
+    """
     with zipfile.ZipFile(path, 'w', zipfile.ZIP_DEFLATED) as zf:
         for k, v in arrays.items():
             if k == member:
@@ -967,8 +1001,12 @@ def _bomb(path, arrays, member: str, inflated: int):
 
 
 def build_files(sb: Sandbox, quick: bool) -> list:
-    """(name, path, expect, model kind) of hostile model files; expect: 'ValueError',
-    'loads' (the control) or 'untrusted' (loads, the certificate is not taken from the file)."""
+    """
+    Build the hostile model files.
+
+    (name, path, expect, model kind) of hostile model files; expect: 'ValueError',
+    'loads' (the control) or 'untrusted' (loads, the certificate is not taken from the file).
+    """
     from dgp_ros.gp import DiagDGP, FullDGP
     rng = np.random.default_rng(0)
     Q = rng.uniform(-1, 1, (40, 3))
@@ -1070,7 +1108,7 @@ def build_files(sb: Sandbox, quick: bool) -> list:
     cases.append(('5 GB sparse file', sparse, V, 'full'))
     cases += [('/dev/zero', '/dev/zero', V, 'full'), ('/dev/urandom', '/dev/urandom', V, 'full'),
               ('/dev/null', '/dev/null', V, 'full'), ('a directory', sb.decoy('dir.npz'), V,
-                                                     'full'),
+                                                      'full'),
               ('a FIFO', sb.decoy('fifo.npz'), V, 'full'),
               ('symlink to /dev/zero', sb.decoy('zero.npz'), V, 'full'),
               ('missing file', f('missing.npz'), V, 'full')]
@@ -1078,8 +1116,11 @@ def build_files(sb: Sandbox, quick: bool) -> list:
 
 
 def in_child(fn, timeout: float):
-    """Run ``fn()`` in a forked child; return (outcome, message, seconds, rss_delta_mib, info).
-    outcome: 'ok' (returned), an exception class name, or 'timeout' / 'died'."""
+    """
+    Run ``fn()`` in a forked child; return (outcome, message, seconds, rss_delta_mib, info).
+
+    outcome: 'ok' (returned), an exception class name, or 'timeout' / 'died'.
+    """
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:                      # child
@@ -1159,7 +1200,8 @@ def _model_path_probe(path, kind, passivity, n_msgs=30):
         d2 = est.diagnostics()
         est.close()
         return {'result': 'load_error' if d['load_error'] else 'loaded',
-                'reason': d['load_error'][:300], 'certified': d['certified'], 'method': d['method'],
+                'reason': d['load_error'][:300], 'certified': d['certified'],
+                'method': d['method'],
                 'stale': d['certificate_stale'], 'nonfinite': T.nonfinite,
                 'nonpassive': T.nonpassive, 'trained_after': d2['trained'],
                 'samples_added': d2['samples_added']}
@@ -1224,7 +1266,8 @@ def run_files(sb: Sandbox, quick: bool) -> dict:
             mp_row = (minfo['result'] if minfo else moc, (minfo or {}).get('reason', mmsg),
                       mdt, mdrss)
         rows.append({'name': name, 'expect': expect, 'outcome': oc, 'message': msg, 'seconds': dt,
-                     'rss_mib': drss, 'info': info, 'ok': bool(ok), 'mp': mp_row, 'mp_ok': bool(mp_ok)})
+                     'rss_mib': drss, 'info': info, 'ok': bool(ok), 'mp': mp_row,
+                     'mp_ok': bool(mp_ok)})
         log(f'  file {name}: {oc} ({dt:.3f} s, {drss:.1f} MiB) | model_path: {mp_row[0]}'
             + ('' if ok and mp_ok else '  <-- FAILED'))
     os.unlink(os.path.join(sb.files, 'sparse_5GB.npz'))
@@ -1287,7 +1330,7 @@ def build_bags(sb: Sandbox) -> list:
     Tt = ts.types
     js = Tt[JOINT_STATE](
         header=Tt['std_msgs/msg/Header'](stamp=Tt['builtin_interfaces/msg/Time'](sec=1,
-                                                                                  nanosec=0),
+                                                                                 nanosec=0),
                                          frame_id=''),
         name=['a'], position=np.zeros(0), velocity=np.ones(1), effort=np.ones(1))
     out = []
@@ -1434,8 +1477,11 @@ class Child:
 
 
 class Live:
-    """This process's side of the DDS trial: a publisher, the estimator's outputs, its
-    diagnostics, its parameter services."""
+    """
+    This process's side of the DDS trial.
+
+    A publisher, the estimator's outputs, its diagnostics, its parameter services.
+    """
 
     def __init__(self):
         import rclpy
@@ -1592,8 +1638,12 @@ def wait_future(live, fut, child, timeout=20.0):
 
 
 def run_live(sb: Sandbox, sizes: dict, quick: bool) -> dict:
-    """Messages (class 1, a smaller share), parameter sets (class 2) and model files given as
-    ``model_path`` at start (class 3) against the ``estimator`` node process."""
+    """
+    Run the live trial over DDS.
+
+    Messages (class 1, a smaller share), parameter sets (class 2) and model files given as
+    ``model_path`` at start (class 3) against the ``estimator`` node process.
+    """
     from rclpy.parameter import Parameter, parameter_value_to_python
     from rclpy.parameter_client import AsyncParameterClient
     from std_srvs.srv import Trigger
@@ -1626,7 +1676,6 @@ def run_live(sb: Sandbox, sizes: dict, quick: bool) -> dict:
             return ms
 
         prev = [live.fresh_diag(5.0, child)]
-        counted_bad = collections.Counter()
 
         def run_class(name, msgs, rate=1000.0, expect_answers=None):
             bad0 = sum(live.bad.values())
@@ -1795,7 +1844,7 @@ def run_live(sb: Sandbox, sizes: dict, quick: bool) -> dict:
             d1 = prev[0]
             out['after_params'] = {'added_before': _counter(d0, 'samples_added'),
                                    'added_after': _counter(d1, 'samples_added')}
-        out['final_diag'] = {k: v for k, v in (prev[0] or {}).items()}
+        out['final_diag'] = dict((prev[0] or {}).items())
     finally:
         out['bad'] = dict(live.bad)
         out['got'] = dict(live.got)
@@ -1943,9 +1992,9 @@ def build_report(R: dict, quick: bool, seconds: float) -> str:
                          ', '.join(f'{a} {b}' for a, b in T.unexpected.items()) or '-',
                          T.refits, f'{T.seconds:.2f}', '; '.join(T.notes) or '-'])
         L.append(tbl(['Class', 'Messages', 'Answered', 'Rejected (reason count)',
-                           'Non-finite', 'Non-passive', 'Power < 0 within rounding',
-                           'Exceptions', 'Untruthful', 'Other than expected', 'Refits',
-                           'Seconds', 'Notes'], rows))
+                      'Non-finite', 'Non-passive', 'Power < 0 within rounding',
+                      'Exceptions', 'Untruthful', 'Other than expected', 'Refits',
+                      'Seconds', 'Notes'], rows))
         lr = run['learning']
         L.append(f'After all classes: samples_added {lr["added_before_outlier"]} before the '
                  f'outlier, {lr["added_after_outlier"]} after it, {lr["added_end"]} at the end; '
@@ -1955,7 +2004,8 @@ def build_report(R: dict, quick: bool, seconds: float) -> str:
                  f'max |tau_hat| after '
                  f'the outlier {fmt(lr["max_abs_tau_after_outlier"])}; learning frozen: '
                  f'{yes_no(lr["frozen"])}; still poisoned at the end (NMSE above max(10 x '
-                 f'control, 0.05)): {yes_no(lr["poisoned"])}. Counters: received {lr["counted"]["received"]}, '
+                 f'control, 0.05)): {yes_no(lr["poisoned"])}. Counters: received '
+                 f'{lr["counted"]["received"]}, '
                  f'accepted {lr["counted"]["accepted"]}, rejected {lr["counted"]["rejected"]} '
                  f'(agree with what was sent: {yes_no(lr["counters_agree"])}); '
                  f'nonfinite_outputs {lr["nonfinite_outputs"]}, passivity_fallbacks '
@@ -1989,10 +2039,10 @@ def build_report(R: dict, quick: bool, seconds: float) -> str:
                  f'estimator fed the same good data without the burst:\n')
         L.append(tbl(['Good data after (s)', 'NMSE', 'NMSE of the control', 'max |tau_hat|',
                       'max |truth|', 'samples_added', 'Status'],
-                          [[f'{r["seconds"]:.0f}', fmt(r['nmse']), fmt(r['nmse_control']),
-                            fmt(r['max_tau']),
-                            fmt(r['max_truth']), r['added'],
-                            f'{r["level"]}: {r["message"][:90]}'] for r in b['rows']]))
+                     [[f'{r["seconds"]:.0f}', fmt(r['nmse']), fmt(r['nmse_control']),
+                       fmt(r['max_tau']),
+                       fmt(r['max_truth']), r['added'],
+                       f'{r["level"]}: {r["message"][:90]}'] for r in b['rows']]))
     lv = R.get('live') or {}
     if lv.get('skipped'):
         L.append(f'Live over DDS: skipped ({lv["skipped"]}).\n')
@@ -2003,12 +2053,12 @@ def build_report(R: dict, quick: bool, seconds: float) -> str:
                  '`~/damping_force`, `~/damping_force_stddev`, `~/damping_matrix` and '
                  '`~/dissipated_power` message received was checked.\n')
         L.append(tbl(['Class', 'Sent', 'Received by the node', 'Answers received',
-                           'Rejected (node counters)', 'Bad outputs', 'Node alive', 'msg/s'],
-                          [[r['name'], r['sent'], r['received'], r['answers'], r['rejected'],
-                            r['bad'], yes_no(r['alive']),
-                            f'{r["rate"]:.0f}' if r['name'].startswith(('flood', 'repeats'))
-                            else '-']
-                           for r in lv['classes']]))
+                      'Rejected (node counters)', 'Bad outputs', 'Node alive', 'msg/s'],
+                     [[r['name'], r['sent'], r['received'], r['answers'], r['rejected'],
+                       r['bad'], yes_no(r['alive']),
+                       f'{r["rate"]:.0f}' if r['name'].startswith(('flood', 'repeats'))
+                       else '-']
+                      for r in lv['classes']]))
         lr = lv.get('learning', {})
         L.append(f'Outputs received: {", ".join(f"{k} {v}" for k, v in lv["got"].items())}; '
                  f'bad: {lv["bad"] or "none"}. After the outlier: samples_added '
@@ -2042,23 +2092,23 @@ def build_report(R: dict, quick: bool, seconds: float) -> str:
              '(`joints` not configured, so N is unknown until a message arrives), then 200 '
              'good 3-joint messages:\n')
     L.append(tbl(['Configuration', 'Messages', 'Answered', 'Exceptions from process()',
-                       'Non-finite', 'Non-passive', 'Trained', 'Refits failed', 'Status'],
-                      [[e['label'], e['tally'].sent, e['tally'].answered,
-                        (f'{sum(e["tally"].exceptions.values())} ({e["exception"]})'
-                         if e['exception'] else '0'), e['tally'].nonfinite,
-                        e['tally'].nonpassive, yes_no(e['trained']), e['refits_failed'],
-                        e['message'][:120]] for e in P['early']]))
+                  'Non-finite', 'Non-passive', 'Trained', 'Refits failed', 'Status'],
+                 [[e['label'], e['tally'].sent, e['tally'].answered,
+                   (f'{sum(e["tally"].exceptions.values())} ({e["exception"]})'
+                    if e['exception'] else '0'), e['tally'].nonfinite,
+                   e['tally'].nonpassive, yes_no(e['trained']), e['refits_failed'],
+                   e['message'][:120]] for e in P['early']]))
     if lv and lv.get('params'):
         L.append("Live, through the node's parameter services (`AsyncParameterClient`); after "
                  'each set the watched parameters are read back and `~/save_model` is called '
                  "(it must write the node's own model file only):\n")
         L.append(tbl(['Set', 'Refused', 'Reason (start)', 'Nothing changed', 'Node alive',
-                           '~/save_model after it'],
-                          [[f'`{r["set"]}`', yes_no(r['refused']),
-                            r['reason'][:90], yes_no(r['unchanged']),
-                            yes_no(r['alive']), r['save'][:60].replace(
+                      '~/save_model after it'],
+                     [[f'`{r["set"]}`', yes_no(r['refused']),
+                       r['reason'][:90], yes_no(r['unchanged']),
+                       yes_no(r['alive']), r['save'][:60].replace(
                                 os.path.dirname(R['sandbox']), '...')]
-                           for r in lv['params']]))
+                      for r in lv['params']]))
         fr = lv.get('fresh')
         if fr and 'set' in fr:
             L.append(f'Live, a fresh node (no message yet), `{fr["set"]}` then {fr["sent"]} good '
@@ -2093,7 +2143,7 @@ def build_report(R: dict, quick: bool, seconds: float) -> str:
                      f'{mp[0]}: {str(mp[1])[:60]}' if mp[0] != '-' else '-',
                      'ok' if r['ok'] and r['mp_ok'] else '**FAILED**'])
     L.append(tbl(['File', 'load_model', 'Seconds', 'Peak RSS delta (MiB)',
-                       'As model_path', 'Result'], rows))
+                  'As model_path', 'Result'], rows))
     L.append(f'Max seconds {max(r["seconds"] for r in F["rows"]):.3f}, max peak RSS delta '
              f'{max(r["rss_mib"] for r in F["rows"]):.1f} MiB.\n')
     if lv and lv.get('starts'):
@@ -2101,13 +2151,13 @@ def build_report(R: dict, quick: bool, seconds: float) -> str:
                  'exit status 2 with a one-line reason, or it runs with the file not used. '
                  'Peak RSS of the whole node process (the control has no model_path).\n')
         L.append(tbl(['model_path at start', 'Exit status', 'Seconds to exit / first '
-                           'diagnostics', 'Peak RSS (MiB)', 'Trained / certified (method)',
-                           'load_error / last log line', 'Traceback'],
-                          [[r['start'], r['rc'], f'{r["seconds"]:.1f}', f'{r["hwm_mib"]:.0f}',
-                            f'{r["trained"]} / {r["certified"]} ({r["method"]})'
-                            if r['trained'] != '' else '-',
-                            (r['load_error'] or r['first_line'])[:110],
-                            yes_no(r['traceback'])] for r in lv['starts']]))
+                      'diagnostics', 'Peak RSS (MiB)', 'Trained / certified (method)',
+                      'load_error / last log line', 'Traceback'],
+                     [[r['start'], r['rc'], f'{r["seconds"]:.1f}', f'{r["hwm_mib"]:.0f}',
+                       f'{r["trained"]} / {r["certified"]} ({r["method"]})'
+                       if r['trained'] != '' else '-',
+                       (r['load_error'] or r['first_line'])[:110],
+                       yes_no(r['traceback'])] for r in lv['starts']]))
 
     # 4. bags
     B = R['bags']
@@ -2116,9 +2166,9 @@ def build_report(R: dict, quick: bool, seconds: float) -> str:
              '`sensor_msgs/JointState` topic), played by `dgp-play` and by '
              '`dgp_ros.bags.ros.Player` in a subprocess that then checks `sys.modules`.\n')
     L.append(tbl(['Bag', 'Entry', 'Exit / result', 'Modules imported', 'Message', 'Result'],
-                      [[r['bag'], r['entry'], r['rc'], ', '.join(r['imported']) or 'none',
-                        r['message'][:100],
-                        'ok' if r['ok'] else '**FAILED**'] for r in B['rows']]))
+                 [[r['bag'], r['entry'], r['rc'], ', '.join(r['imported']) or 'none',
+                   r['message'][:100],
+                   'ok' if r['ok'] else '**FAILED**'] for r in B['rows']]))
     if R.get('findings'):
         L.append('### Findings\n')
         L.append('\n'.join(f'- {f}' for f in R['findings']) + '\n')
@@ -2137,7 +2187,6 @@ def summarize(R: dict) -> List[dict]:
     lv = R.get('live') or {}
     lclasses = lv.get('classes', [])
     live_msgs = sum(r['sent'] for r in lclasses)
-    live_bad = sum(lv.get('bad', {}).values())
     live_crash = int(bool(lclasses) and (lv.get('rc') not in (0, None) or
                                          not lv.get('alive_at_end', True) or
                                          lv.get('traceback', False)))
@@ -2183,7 +2232,7 @@ def summarize(R: dict) -> List[dict]:
             not fresh.get('crashed', False))
     live_after = lv.get('after_params', {})
     frozen_p = not P['still_learning'] or (bool(live_after) and
-                                          live_after['added_after'] <= live_after['added_before'])
+                                           live_after['added_after'] <= live_after['added_before'])
     S.append({'cls': '2. Parameter sets', 'inputs': f'{c["attempts"]} in-process ({P["cases"]} '
               f'sets x 3 paths) + {len(P["early"])} before the first message, '
               f'{len(lp) + (1 if fresh else 0)} live',
@@ -2227,8 +2276,9 @@ def summarize(R: dict) -> List[dict]:
 # ----------------------------------------------------------------------------- main
 def sizes_for(quick: bool) -> dict:
     if quick:
-        return {'k': 5, 'warm': 300, 'flood': 400, 'repeats': 600, 'after_outlier': 500, 'recovery': 400,
-                'k_live': 2, 'warm_live': 200, 'flood_live': 400, 'repeats_live': 400, 'after_live': 200}
+        return {'k': 5, 'warm': 300, 'flood': 400, 'repeats': 600, 'after_outlier': 500,
+                'recovery': 400, 'k_live': 2, 'warm_live': 200, 'flood_live': 400,
+                'repeats_live': 400, 'after_live': 200}
     return {'k': 400, 'warm': 2000, 'flood': 20000, 'repeats': 100_000, 'after_outlier': 6000,
             'recovery': 6000, 'k_live': 60, 'warm_live': 2000, 'flood_live': 10000,
             'repeats_live': 10000, 'after_live': 3000}
@@ -2312,13 +2362,14 @@ def main(argv=None) -> int:
             k = sizes['k'] if run['label'] == 'full/projected' else max(2, int(sizes['k'] / 4))
             if Ts and Ts[0].refits > k:
                 R['findings'].append(
-                    f'Refit on demand by stamps ({run["label"]}): {Ts[0].refits} refit jobs during '
-                    f'the stamps class ({Ts[0].sent} messages, {k} rounds with three far-future '
-                    f'stamps each, {Ts[0].seconds:.0f} s in sync mode). A far-future stamp makes '
-                    f'the periodic refit due, the next normal stamp resets the refit clock (time '
-                    f'jump back), so a peer alternating them gets a full refit (hyper-parameter '
-                    f'learning every optimize_every_n_refits-th) per far-future message: in async '
-                    f'mode the worker is kept busy, in sync mode the message path pays for it.')
+                    f'Refit on demand by stamps ({run["label"]}): {Ts[0].refits} refit jobs '
+                    f'during the stamps class ({Ts[0].sent} messages, {k} rounds with three '
+                    f'far-future stamps each, {Ts[0].seconds:.0f} s in sync mode). A far-future '
+                    'stamp makes the periodic refit due, the next normal stamp resets the refit '
+                    'clock (time jump back), so a peer alternating them gets a full refit '
+                    '(hyper-parameter learning every optimize_every_n_refits-th) per far-future '
+                    'message: in async mode the worker is kept busy, in sync mode the message '
+                    'path pays for it.')
                 break
         for b in R['burst']:
             r0 = b['rows'][0]
@@ -2351,12 +2402,12 @@ def main(argv=None) -> int:
         if early:
             e = early[0]
             R['findings'].append(
-                f'**Bug**: with `joints` not configured, a `selection_scale` whose length does not '
-                f'match the joints of the messages (set at start, or at run time before the first '
-                f'message, when N is not known and nothing can refuse it) makes '
-                f'`OnlineEstimator.process()` raise on every later message '
+                f'**Bug**: with `joints` not configured, a `selection_scale` whose length does '
+                'not match the joints of the messages (set at start, or at run time before the '
+                'first message, when N is not known and nothing can refuse it) makes '
+                '`OnlineEstimator.process()` raise on every later message '
                 f'({sum(e["tally"].exceptions.values())}/{e["tally"].sent}: {e["exception"]}: '
-                f'operands could not be broadcast, from `Selector.novel`). '
+                'operands could not be broadcast, from `Selector.novel`). '
                 + ('Live, a peer setting it on a fresh node kills the node (exit '
                    f'{lv["fresh"].get("rc")}, "{lv["fresh"].get("last_line", "")[:100]}"). '
                    if lv.get('fresh', {}).get('crashed') else '') +

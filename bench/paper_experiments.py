@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""The paper's experiments (Dai, Evangelisti, Hirche, L4DC 2024) on the JSBSim A320 approach.
+"""
+The paper's experiments (Dai, Evangelisti, Hirche, L4DC 2024) on the JSBSim A320 approach.
 
 (a) trajectory protocol: 50 equidistant training points along the simulated approach, 100
     validation points (equidistant, disjoint from training), test on the whole trajectory; per
@@ -43,8 +44,12 @@ def _extra(p):
 
 
 def fit_kw(a) -> dict:
-    """Model options: library defaults in full mode; a cheaper optimizer and verification
-    budget in quick mode (CI smoke test)."""
+    """
+    Model options.
+
+    Library defaults in full mode; a cheaper optimizer and verification budget in quick mode (CI
+    smoke test).
+    """
     return {'n_restarts': 0, 'max_boxes': 2000, 'max_opt_samples': 100} if a.quick else {}
 
 
@@ -63,7 +68,7 @@ def part_a(a, data):
     k = Q.shape[0]
     tr, va = trajectory_split(k)
     C.log(f'(a) trajectory: {k} samples, {tr.size} train, {va.size} validation')
-    models, rows, stats = {}, [], {}
+    models, stats = {}, {}
     for kind in C.KINDS:
         if a.quick:
             fits = C.fit_all_modes(kind, Q[tr], T[tr], **fit_kw(a))
@@ -91,11 +96,11 @@ def section_a(a, A, wall):
     L = [C.header_lines('Paper experiment (a): trajectory protocol, JSBSim A320 approach',
                         'bench/paper_experiments.py', a.quick,
                         wall)]
-    L.append(f'One simulated approach (`simulate_approach(SimConfig())`, {A["Q"].shape[0]} samples '
-             f'at 60 Hz, mass {A["mass"]:.0f} kg); inputs `[alpha, beta, V]`, outputs `[drag, '
-             f'-side, lift]` (N). Training: {A["tr"].size} equidistant samples; validation: '
-             f'{A["va"].size} equidistant samples disjoint from them; test: the whole trajectory. '
-             f'Error `e = (tau_hat - tau) / mass` (m/s^2). '
+    L.append(f'One simulated approach (`simulate_approach(SimConfig())`, {A["Q"].shape[0]} '
+             f'samples at 60 Hz, mass {A["mass"]:.0f} kg); inputs `[alpha, beta, V]`, outputs '
+             f'`[drag, -side, lift]` (N). Training: {A["tr"].size} equidistant samples; '
+             f'validation: {A["va"].size} equidistant samples disjoint from them; test: the whole '
+             'trajectory. Error `e = (tau_hat - tau) / mass` (m/s^2). '
              + ('Quick mode: each kind optimized once, the modes fitted at those hyper-parameters.'
                 + ' Quick mode: 0 optimizer restarts, verification budget 2000 boxes.'
                 if a.quick else 'Every row is `make_model(kind, passivity=mode).fit(Q, T)` '
@@ -187,7 +192,8 @@ def part_b(a, aero):
                     certs[(kind, mode)][n].append(C.cert_summary(m))
                     if seed == seeds[0] and n == ns[-1]:
                         last_models[(kind, mode)] = (m, Q)
-    return {'ns': ns, 'seeds': seeds, 'res': res, 'certs': certs, 'k_test': k_test, 'models': last_models}
+    return {'ns': ns, 'seeds': seeds, 'res': res, 'certs': certs, 'k_test': k_test,
+            'models': last_models}
 
 
 def section_b(a, B, wall):
@@ -198,15 +204,15 @@ def section_b(a, B, wall):
     L.append(f'Training and test points uniform in the flown envelope alpha '
              f'{np.rad2deg(VOLUME_LO[0]):.1f}..{np.rad2deg(VOLUME_HI[0]):.1f} deg, beta '
              f'{np.rad2deg(VOLUME_LO[1]):.0f}..{np.rad2deg(VOLUME_HI[1]):.0f} deg, V '
-             f'{VOLUME_LO[2]:.0f}..{VOLUME_HI[2]:.0f} m/s; forces from `FrozenAero` (JSBSim tables '
-             f'at frozen states, noise-free); {B["k_test"]} test points; seeds {B["seeds"]}'
-             + ('' if a.quick else f' for n <= 100, seed 0 only for n > 100 (time budget)') +
+             f'{VOLUME_LO[2]:.0f}..{VOLUME_HI[2]:.0f} m/s; forces from `FrozenAero` (JSBSim '
+             f'tables at frozen states, noise-free); {B["k_test"]} test points; seeds {B["seeds"]}'
+             + ('' if a.quick else ' for n <= 100, seed 0 only for n > 100 (time budget)') +
              '. Certified mode declares the volume as its operating domain (`operating_domain=`, '
              'proven as a whole, not only the box of the n training points)' +
              ('' if a.quick else ', library default verification budget') + '. ' +
-             f'Median NMSE over seeds (min..max in the plot). Each model is optimized once '
-             f'(passivity none, on at most 300 samples) and every mode is fitted at those '
-             f'hyper-parameters.\n')
+             'Median NMSE over seeds (min..max in the plot). Each model is optimized once '
+             '(passivity none, on at most 300 samples) and every mode is fitted at those '
+             'hyper-parameters.\n')
     for j, o in enumerate(OUT_NAMES):
         L.append(f'### NMSE {o}\n')
         rows = []
@@ -374,7 +380,7 @@ def section_d(a, A, B, Cc, wall):
     vol_ns = [n for n in ns if n in (50, ns[-1])] if ns else []
     hdr = ['model', 'passivity', 'traj NMSE', 'traj ratio (max)']
     for n in vol_ns:
-        hdr += [f'vol n={n} NMSE', f'ratio (max)']
+        hdr += [f'vol n={n} NMSE', 'ratio (max)']
     band = [n for n in ns if 50 <= n <= 500]
     hdr += ['vol worst ratio n=50..500', 'violations traj', 'violations vol', 'cert. time traj']
     hdr += [f'cert. time vol n={n}' for n in vol_ns]

@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Real robot arms: raw /joint_states in, passive friction out (issue 14, point 6).
+"""
+Real robot arms: raw /joint_states in, passive friction out (issue 14, point 6).
 
 Data: ``dgp_ros.dynamics.simulate_arm`` (Panda, 7 joints; UR5, 6 joints): 20 s at 1 kHz with
 jittered stamps, raw joint torques = rigid body (pinocchio RNEA on the example-robot-data URDF)
@@ -81,13 +82,14 @@ def make_data(robot, duration, seed, work):
     learn_bag = write_joint_state_bag(base + '_learn', msgs(slice(0, k)), topic='/joint_states')
     full_bag = write_joint_state_bag(base + '_all', msgs(slice(None)), topic='/joint_states')
     Qh = d['qd_true'][k:]
-    return {'robot': robot, 'seed': seed, 'sim': d, 'names': names, 'k': k, 'learn_bag': str(learn_bag),
-            'full_bag': str(full_bag), 'Qh': Qh, 'Fh': friction_truth(robot, Qh),
+    return {'robot': robot, 'seed': seed, 'sim': d, 'names': names, 'k': k,
+            'learn_bag': str(learn_bag), 'full_bag': str(full_bag), 'Qh': Qh,
+            'Fh': friction_truth(robot, Qh),
             'duration': duration}
 
 
 def residual_stream(D, urdf, config):
-    """The residual samples the estimator's front end produces on the learning part: (Qd, R)."""
+    """Return the estimator front end's residual samples on the learning part: (Qd, R)."""
     from dgp_ros.dynamics import AccelFilter, FrictionResidual, make_inverse_dynamics
     d, k, names = D['sim'], D['k'], D['names']
     inv = make_inverse_dynamics('urdf', urdf_file=urdf, joints=names)
@@ -128,8 +130,12 @@ def _makkar(p, v):
 
 
 def fit_sigmoid(v, y, cv):
-    """Makkar et al.: ``a1 (tanh(b1 v) - tanh(b2 v)) + a2 tanh(b3 v) + a3 v + b``, per joint,
-    ``scipy.optimize.least_squares`` from several starts (b_i = exp(l_i) > 0)."""
+    """
+    Fit the Makkar friction model per joint.
+
+    Makkar et al.: ``a1 (tanh(b1 v) - tanh(b2 v)) + a2 tanh(b3 v) + a3 v + b``, per joint,
+    ``scipy.optimize.least_squares`` from several starts (b_i = exp(l_i) > 0).
+    """
     from scipy.optimize import least_squares
 
     def res(p):
@@ -170,8 +176,11 @@ def row_label(kind, prior, bias):
 
 def replay_row(D, urdf, work, kind, prior, bias, passivity='projected', defaults=False,
                bag=None, save=True, extra=None, note=''):
-    """Learn through dgp_ros.replay.run; return the row's numbers (and the loaded model).
-    ``extra``: further estimator parameters (non-default rows); ``note``: shown with the row."""
+    """
+    Learn through dgp_ros.replay.run; return the row's numbers (and the loaded model).
+
+    ``extra``: further estimator parameters (non-default rows); ``note``: shown with the row.
+    """
     from dgp_ros.gp import load_model
     from dgp_ros.replay import ReplayError, build_config, run
     over = {'joints': D['names'], 'inverse_dynamics': 'urdf', 'urdf_file': urdf}
@@ -193,9 +202,11 @@ def replay_row(D, urdf, work, kind, prior, bias, passivity='projected', defaults
         with open(summary) as f:
             s = json.load(f)
     shutil.rmtree(out, ignore_errors=True)
-    r = {'kind': kind, 'prior': prior, 'bias': bias, 'passivity': passivity, 'summary': s, 'config': cfg,
+    r = {'kind': kind, 'prior': prior, 'bias': bias, 'passivity': passivity, 'summary': s,
+         'config': cfg,
          'timings': s['timings'], 'refits': s['refits'], 'status': s['status'], 'note': note,
-         'defaults': defaults, 'error': error, 'nmse': np.full(len(D['names']), np.nan), 'neg': None}
+         'defaults': defaults, 'error': error, 'nmse': np.full(len(D['names']), np.nan),
+         'neg': None}
     if save and not error:
         m = load_model(path)
         r['model'] = m
@@ -211,7 +222,8 @@ def neg_power(model, lo, hi, k, seed):
     rng = np.random.default_rng(seed)
     s_in, t_in, m_in = C.negative_power_count(model, C.random_points(rng, lo, hi, k))
     s_far, t_far, m_far = C.negative_power_count(model, C.far_points(rng, lo, hi, k))
-    return {'s_in': s_in, 's_far': s_far, 't_in': t_in, 't_far': t_far, 'min_rel': min(m_in, m_far)}
+    return {'s_in': s_in, 's_far': s_far, 't_in': t_in, 't_far': t_far,
+            'min_rel': min(m_in, m_far)}
 
 
 def coverage(X, Q):
@@ -229,9 +241,13 @@ def gmean(x):
 # ----------------------------------------------------------------------------- one data set
 def run_dataset(a, robot, seed, duration, work, urdf, configs, k_pass, extras, big_buffer=0,
                 quick=False):
-    """Every row on one simulated bag. ``extras``: also the 'none' rows, the best row with a
-    ``big_buffer`` buffer (if > 0), the whole-bag timing replay and the no-inverse-dynamics WARN
-    replay (quick: no whole-bag replay, and only the ARD-GP 'none' row)."""
+    """
+    Every row on one simulated bag.
+
+    ``extras``: also the 'none' rows, the best row with a ``big_buffer`` buffer (if > 0), the
+    whole-bag timing replay and the no-inverse-dynamics WARN replay (quick: no whole-bag replay,
+    and only the ARD-GP 'none' row).
+    """
     from dgp_ros.replay import build_config
     C.log(f'{NAME}: {robot} seed {seed}: simulate {duration:g} s and write the bags')
     D = make_data(robot, duration, seed, work)
@@ -295,7 +311,7 @@ def run_dataset(a, robot, seed, duration, work, urdf, configs, k_pass, extras, b
         b = D['best']
         todo = ([(b['kind'], b['prior'], b['bias'], 'none', None, 'passivity none')]
                 if b and not quick else []) + ([] if quick else
-                            [SHIPPED + ('none', None, 'passivity none')]) + \
+                                               [SHIPPED + ('none', None, 'passivity none')]) + \
             [('ard', 'viscous', False, 'none', None, 'passivity none')]
         todo = [t for i, t in enumerate(todo) if t[:3] not in [u[:3] for u in todo[:i]]]
         if big_buffer and b:
@@ -431,7 +447,7 @@ def timing_table(D):
 
 
 def status_notes(D) -> str:
-    """The estimator's final status of every row that did not end 'ok' (or never trained)."""
+    """Return the estimator's final status of each row that did not end 'ok' (or never trained)."""
     out = []
     for r in D['rows'] + D['extra_rows']:
         st = r['status']
@@ -454,7 +470,7 @@ def _cell(text, n):
 
 
 def _warning(message):
-    """The part of a status message that gives the negative-power reason (else all of it)."""
+    """Return the part of a status message giving the negative-power reason (else all of it)."""
     i = message.find('data are not damping')
     return message if i < 0 else message[i:]
 
@@ -644,8 +660,9 @@ def main(argv=None) -> int:
               for r in D['rows'] + D['extra_rows']
               if r['passivity'] != 'none' and r['neg'] is not None]
     tot = sum(r['neg']['s_in'] + r['neg']['s_far'] for _, r in allneg)
-    targets.append([f'0 negative power in {k_pass} random velocities (every saved model, passivity '
-                    f'projected: {len(allneg)} models x {k_pass} inside + {k_pass} far outside)',
+    targets.append([f'0 negative power in {k_pass} random velocities (every saved model, '
+                    f'passivity projected: {len(allneg)} models x {k_pass} inside + {k_pass} far '
+                    'outside)',
                     'met' if tot == 0 else '**missed**', f'{tot} negative'])
     for robot in robots:
         D = results[(robot, seeds[0])]

@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Soak / load test of the online estimator (issue 8, item 4).
+"""
+Soak / load test of the online estimator (issue 8, item 4).
 
 Drives :class:`dgp_ros.online.OnlineEstimator` in-process with a paced stream (default 1 kHz for
 60 s, buffer 1000, async refits), and optionally the ``dgp_estimator`` node over DDS (``--node``:
@@ -138,17 +139,21 @@ def run_inprocess(args) -> dict:
     misses = sum(1 for x in durations if x > args.refit_period) if args.refit_period > 0 else 0
     expected_refits = int(args.duration / args.refit_period) if args.refit_period > 0 else 1
     return {
-        'mode': 'inprocess', 'messages': n_total, 'wall_s': wall, 'achieved_rate_hz': n_total / wall,
+        'mode': 'inprocess', 'messages': n_total, 'wall_s': wall,
+        'achieved_rate_hz': n_total / wall,
         'backlog': {'max': float(tr[:, 1].max()) if len(tr) else 0.0,
                     'end': float(tr[-1, 1]) if len(tr) else 0.0, 'slope_msgs_per_s': slope},
         'rss': {'after_warmup_mib': rss0, 'end_mib': rss1, 'growth_mib': rss1 - rss0},
-        'refits': {'started': d['refits_started'], 'ok': d['refits_ok'], 'failed': d['refits_failed'],
+        'refits': {'started': d['refits_started'], 'ok': d['refits_ok'],
+                   'failed': d['refits_failed'],
                    'expected_by_period': expected_refits,
                    'deadline_misses': misses + (1 if running_at_end and not durations else 0),
-                   'running_at_end': running_at_end, 'pending_samples_at_end': pending_at_end, 'durations_s': [round(x, 4) for x in durations],
+                   'running_at_end': running_at_end, 'pending_samples_at_end': pending_at_end,
+                   'durations_s': [round(x, 4) for x in durations],
                    'max_s': max(durations) if durations else float('nan'),
                    'last_error': d['last_refit_error']},
-        'latency': {'process_p50_ms': 1e3 * pct(proc_t, 50), 'process_p99_ms': 1e3 * pct(proc_t, 99),
+        'latency': {'process_p50_ms': 1e3 * pct(proc_t, 50),
+                    'process_p99_ms': 1e3 * pct(proc_t, 99),
                     'process_max_ms': 1e3 * float(proc_t.max()),
                     'lateness_p50_ms': 1e3 * pct(late, 50), 'lateness_p99_ms': 1e3 * pct(late, 99),
                     'lateness_max_ms': 1e3 * float(late.max())},
@@ -161,7 +166,11 @@ def run_inprocess(args) -> dict:
 
 
 def run_node(args) -> dict:
-    """The estimator node as a child process; this process publishes at ``rate`` and listens."""
+    """
+    Run the estimator node as a child process.
+
+    This process publishes at ``rate`` and listens.
+    """
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
@@ -171,7 +180,8 @@ def run_node(args) -> dict:
 
     exe = os.path.join(os.path.dirname(sys.executable), 'estimator')
     cmd = [exe, '--ros-args', '-p', f'model:={args.model}', '-p', f'passivity:={args.passivity}',
-           '-p', f'buffer_size:={args.buffer}', '-p', f'refit_period_s:={float(args.refit_period)}',
+           '-p', f'buffer_size:={args.buffer}',
+           '-p', f'refit_period_s:={float(args.refit_period)}',
            '-p', f'optimize_every_n_refits:={args.optimize_every}',
            '-p', f'selection:={args.selection}', '-p', 'diagnostics_period_s:=1.0',
            '-p', f'min_sample_interval_s:={float(args.min_sample_interval)}']
@@ -250,7 +260,8 @@ def run_node(args) -> dict:
                 'estimator_messages_received': int(kv.get('messages_received', -1)),
                 'dropped_frac': 1 - got[0] / n_total,
                 'rss': {'after_warmup_mib': float(r[w]) if len(r) > w else float('nan'),
-                        'end_mib': float(r[-1]), 'growth_mib': float(r[-1] - r[min(w, len(r) - 1)])},
+                        'end_mib': float(r[-1]),
+                        'growth_mib': float(r[-1] - r[min(w, len(r) - 1)])},
                 'latency': {'e2e_p50_ms': 1e3 * pct(lat, 50), 'e2e_p99_ms': 1e3 * pct(lat, 99)},
                 'refits': {'ok': int(kv.get('refits_ok', -1)),
                            'failed': int(kv.get('refits_failed', -1)),

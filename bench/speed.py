@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Speed of dgp_ros.gp and of the online estimator, as ratios measured in the same run.
+"""
+Speed of dgp_ros.gp and of the online estimator, as ratios measured in the same run.
 
 References measured alongside (the machine is shared, absolute times are noisy):
 
@@ -20,20 +21,19 @@ Usage: bench/speed.py [--quick] [--out DIR]
 """
 from __future__ import annotations
 
+import cProfile
+import io
+import os
 import os as _os
+import pstats
+import sys
+import time
 
 # Single-threaded BLAS by default: the machine is shared (2 cores, other jobs), and a 2-thread
 # OpenBLAS on oversubscribed cores spin-waits, which made 3 x cho_factor(500) take ~1 s. All
 # ratios compare single-threaded runs. Override by setting the variables before starting.
 for _v in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     _os.environ.setdefault(_v, '1')
-
-import cProfile
-import io
-import os
-import pstats
-import sys
-import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -48,8 +48,12 @@ K_BATCH = 2000          # test points per batch prediction
 
 # ----------------------------------------------------------------------------- data
 def make_data(n_max: int, seed: int = 0):
-    """(alpha, beta, V) uniform in the flown envelope, forces from the frozen-state JSBSim A320,
-    plus 1 % noise (so that the noise hyper-parameter is not at its floor)."""
+    """
+    Make the benchmark data.
+
+    (alpha, beta, V) uniform in the flown envelope, forces from the frozen-state JSBSim A320,
+    plus 1 % noise (so that the noise hyper-parameter is not at its floor).
+    """
     from sim_bridge import FrozenAero, SimConfig
     from paper_experiments import VOLUME_HI, VOLUME_LO
     rng = np.random.default_rng(seed)
@@ -89,7 +93,7 @@ def sk_predict(gprs, Xs, std=False):
 
 
 def floor_matrix(model, n):
-    """An n x n SPD matrix like the fit's (output 0's kernel + noise), standardized."""
+    """Return an n x n SPD matrix like the fit's (output 0's kernel + noise), standardized."""
     p = model.posterior_
     X = p.X[:n]
     K = p.structure.output_kernel(0, X, X, p.hyper.log_ls, p.hyper.log_sf2)
@@ -107,9 +111,9 @@ def profile_top(fn, k: int = 8) -> str:
     st.print_stats(k)
     lines = s.getvalue().splitlines()
     # keep the table only (drop the preamble), shorten paths
-    i = next((j for j, l in enumerate(lines) if l.strip().startswith('ncalls')), 0)
-    keep = [l.replace(C.REPO + '/', '') for l in lines[i:i + k + 1] if l.strip()]
-    keep = [l.replace(sys.prefix + '/', '') for l in keep]
+    i = next((j for j, ln in enumerate(lines) if ln.strip().startswith('ncalls')), 0)
+    keep = [ln.replace(C.REPO + '/', '') for ln in lines[i:i + k + 1] if ln.strip()]
+    keep = [ln.replace(sys.prefix + '/', '') for ln in keep]
     return '```\n' + '\n'.join(keep) + '\n```\n'
 
 
@@ -117,7 +121,6 @@ def profile_top(fn, k: int = 8) -> str:
 def bench_core(a, Q, T, ns):
     from scipy.linalg import cho_factor
     from dgp_ros.gp import make_model
-    rng = np.random.default_rng(1)
     hps, res, opt = {}, {}, {}
     # hyper-parameter optimization timing (ours: 3 starts per output on <= 300 samples); the
     # models optimized on the largest of these n give the hyper-parameters kept for every n
@@ -142,7 +145,7 @@ def bench_core(a, Q, T, ns):
             GaussianProcessRegressor(kernel=k, n_restarts_optimizer=nr,
                                      random_state=0).fit(X, Y[:, m])
         opt[(n, 'sk')] = time.perf_counter() - t0
-    Qb, Tb = Q[-K_BATCH:], T[-K_BATCH:]
+    Qb = Q[-K_BATCH:]
     for n in ns:
         Qn, Tn = Q[:n], T[:n]
         rep = 5 if n <= 1000 else (3 if n <= 2000 else 2)
@@ -193,15 +196,18 @@ def bench_core(a, Q, T, ns):
         r['floor'] = C.timeit(lambda: [cho_factor(A, lower=True, check_finite=False)
                                        for _ in range(N_OUT)], repeat=rep)
         # scikit-learn, same kernel and data (ARD)
+        # the lambdas run before the ``del gprs`` below (pyflakes cannot see that): noqa F821
         gprs, X, Y, (sx, sy, mean) = sk_models(ard, Qn, Tn)
-        r['sk_fit'] = C.timeit(lambda: sk_fit(gprs, X, Y), repeat=rep)
+        r['sk_fit'] = C.timeit(lambda: sk_fit(gprs, X, Y), repeat=rep)  # noqa: F821
         Xb = Qb / sx
-        r['sk_predict_pp'] = C.timeit(lambda: sk_predict(gprs, Xb), repeat=rep) / K_BATCH
+        r['sk_predict_pp'] = C.timeit(lambda: sk_predict(gprs, Xb),  # noqa: F821
+                                      repeat=rep) / K_BATCH
         if n <= 2000:
-            r['sk_predict_var_pp'] = C.timeit(lambda: sk_predict(gprs, Xb, True),
+            r['sk_predict_var_pp'] = C.timeit(lambda: sk_predict(gprs, Xb, True),  # noqa: F821
                                               repeat=rep) / K_BATCH
         x1 = Xb[:1]
-        r['sk_single'] = C.timeit(lambda: sk_predict(gprs, x1), repeat=7, min_time=0.05)
+        r['sk_single'] = C.timeit(lambda: sk_predict(gprs, x1),  # noqa: F821
+                                  repeat=7, min_time=0.05)
         # agreement check: same model, same numbers
         ours = ard.predict(Qb)
         sk = np.column_stack(sk_predict(gprs, Xb)) * sy + mean
@@ -212,7 +218,8 @@ def bench_core(a, Q, T, ns):
 
 # ----------------------------------------------------------------------------- node
 def bench_node(a, buffers, n_msgs, tmpdir):
-    """Drive ``OnlineEstimator.process`` in-process.
+    """
+    Drive ``OnlineEstimator.process`` in-process.
 
     Warm start through the node's documented model-file path: a model fitted on ``b`` samples of
     the approach (hyper-parameters optimized once, window = b) is saved and the estimator loads it
@@ -221,7 +228,8 @@ def bench_node(a, buffers, n_msgs, tmpdir):
     windowed O(n^2) update on every message, the worst case) and no refits. The 'default' row
     keeps the config defaults (projected, buffer 200, novelty selection, async refits every 10 s
     of stamp time) and calls ``diagnostics()`` once per wall second on the message thread, as the
-    node's timer does."""
+    node's timer does.
+    """
     from sim_bridge import SimConfig, simulate_approach
     from dgp_ros.gp import make_model
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
@@ -429,7 +437,8 @@ def main(argv=None) -> int:
     ax = axes[2]
     for key, v in node.items():
         lat = np.sort(v['lat']) * 1e3
-        ax.semilogx(lat, np.linspace(0, 1, lat.size), label=f'{key[0]} {key[1]} {key[2]} b={key[3]}')
+        ax.semilogx(lat, np.linspace(0, 1, lat.size),
+                    label=f'{key[0]} {key[1]} {key[2]} b={key[3]}')
     ax.axvline(5, color='k', lw=0.8)
     ax.set_xlabel('per-message latency (ms)')
     ax.set_ylabel('CDF')
@@ -441,9 +450,9 @@ def main(argv=None) -> int:
     # ------------------------------------------------------------------ section
     L = [C.header_lines('Speed: dgp_ros.gp vs scikit-learn and the Cholesky floor; the node',
                         'bench/speed.py', a.quick, wall)]
-    L.append(f'Data: (alpha, beta, V) uniform in the flown envelope, forces from `FrozenAero` + 1 % '
-             f'noise, N = {N_OUT} outputs. Hyper-parameters optimized once per kind on 300 samples '
-             f'and kept fixed (`fit(optimize=False)`, passivity none) at every n. BLAS '
+    L.append(f'Data: (alpha, beta, V) uniform in the flown envelope, forces from `FrozenAero` + '
+             f'1 % noise, N = {N_OUT} outputs. Hyper-parameters optimized once per kind on 300 '
+             f'samples and kept fixed (`fit(optimize=False)`, passivity none) at every n. BLAS '
              f'single-threaded (`OPENBLAS_NUM_THREADS={os.environ.get("OPENBLAS_NUM_THREADS")}`) '
              f'for every contender: the 2 cores are shared. Times are medians '
              f'of repeated runs; ratios compare runs made back to back in this process. '
@@ -451,7 +460,8 @@ def main(argv=None) -> int:
              f"`ConstantKernel*RBF(length_scale=array)+WhiteKernel` at ARD-GP's hyper-parameters "
              f'(standardized data); its predictions agree with ARD-GP to '
              f'{C.fmt(max(res[n]["sk_agree"] for n in ns))} (max relative). Floor: '
-             f'{N_OUT} x `scipy.linalg.cho_factor(check_finite=False)` of an n x n kernel matrix.\n')
+             f'{N_OUT} x `scipy.linalg.cho_factor(check_finite=False)` of an n x n kernel '
+             f'matrix.\n')
     L.append('### Targets\n')
     rows = [[t[0], 'met' if t[1] <= t[2] else '**missed**', t[3]] for t in targets]
     L.append(C.md_table(['target', 'status', 'measured'], rows))
@@ -471,7 +481,7 @@ def main(argv=None) -> int:
               ['sklearn fit', C.fmt(C.loglog_slope(big, [res[n]['sk_fit'] for n in big]))]]
         for k in C.KINDS:
             sl.append([f'{C.LABEL[k]} fit', C.fmt(C.loglog_slope(big, [res[n][(k, 'fit')]
-                                                                    for n in big]))])
+                                                                       for n in big]))])
             sl.append([f'{C.LABEL[k]} update (window)', C.fmt(C.loglog_slope(
                 big, [res[n][(k, 'update_window')] for n in big]))])
             sl.append([f'{C.LABEL[k]} predict per point', C.fmt(C.loglog_slope(
@@ -551,11 +561,13 @@ def main(argv=None) -> int:
                      C.fmt_time(v['p99']), C.fmt_time(v['max']),
                      C.fmt_time(v['fit_s']) if v['fit_s'] else '-', v['fallbacks'], extra])
     L.append(C.md_table(['model', 'passivity', 'selection', 'buffer', 'msg/s', 'p50', 'p99',
-                         'max', 'warm-start fit / last refit', 'passivity fallbacks', 'notes'], rows))
+                         'max', 'warm-start fit / last refit', 'passivity fallbacks', 'notes'],
+                        rows))
     L.append(f'![speed]({C.rel(p, a.out)})\n')
     L.append('### Profiles\n')
-    L.append(f'Message path, Full-D-GP projected, buffer {500 if 500 in buffers else buffers[-1]}, '
-             f'every sample added (cProfile, by own time):\n')
+    L.append(f'Message path, Full-D-GP projected, buffer '
+             f'{500 if 500 in buffers else buffers[-1]}, every sample added (cProfile, by own '
+             f'time):\n')
     L.append(node_prof)
     for key, (what, txt) in profiles.items():
         L.append(f'{what} {key} (missed target; cProfile, by own time):\n')

@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Synthetic 2-DOF joint friction: accuracy vs n and passivity of ARD-GP / Diag-D-GP / Full-D-GP.
+"""
+Synthetic 2-DOF joint friction: accuracy vs n and passivity of ARD-GP / Diag-D-GP / Full-D-GP.
 
 Ground truth (passive by construction, ``qd^T tau(qd) >= 0`` for every ``qd``): per joint a
 smoothed Coulomb + Stribeck + viscous friction
@@ -103,7 +104,8 @@ def main(argv=None) -> int:
                     # passivity at the largest n of every seed (the hardest case for the bounds)
                     if n == ns[-1] or a.quick:
                         prng = np.random.default_rng(7 + seed)
-                        s1, t1, _ = C.negative_power_count(m, C.random_points(prng, lo, hi, k_pass))
+                        s1, t1, _ = C.negative_power_count(
+                            m, C.random_points(prng, lo, hi, k_pass))
                         s2, t2, _ = C.negative_power_count(m, C.far_points(prng, lo, hi, k_pass))
                         v = viol[c]
                         v[0] += s1
@@ -135,14 +137,16 @@ def main(argv=None) -> int:
                             'bench/synthetic_friction.py',
                             a.quick, wall)]
     lines.append(
-        f'Truth: smoothed Coulomb + Stribeck + viscous per joint, a symmetric positive cross-damping '
-        f'and a power-neutral gyroscopic coupling (passive: {truth_neg} negative-power points of '
+        f'Truth: smoothed Coulomb + Stribeck + viscous per joint, a symmetric positive '
+        f'cross-damping and a power-neutral gyroscopic coupling (passive: {truth_neg} '
+        f'negative-power points of '
         f'{2 * k_pass}). Training: n uniform samples in [-{BOX:g}, {BOX:g}]^2 rad/s, '
         f'noise sd {NOISE} Nm; test: NMSE per joint on 4000 noise-free points of the same box; '
         f'seeds {seeds}' + ('' if a.quick else ' for n <= 100, seed 0 only above (time '
-                           'budget); certified mode with the library default verification '
-                           'budget') + '. Median over seeds shown. Each model is optimized once (passivity none) and every '
-        f'mode is fitted at those hyper-parameters.\n')
+                            'budget); certified mode with the library default verification '
+                            'budget') + '. Median over seeds shown. Each model is optimized once '
+        '(passivity none) and every '
+        'mode is fitted at those hyper-parameters.\n')
     lines.append('### NMSE per joint (median over seeds), joint 1 / joint 2\n')
     hdr = ['model', 'passivity'] + [f'n={n}' for n in ns]
     rows = []

@@ -1,4 +1,5 @@
-"""dgp_ros: Dissipative Gaussian Processes for passive online damping identification.
+"""
+dgp_ros: Dissipative Gaussian Processes for passive online damping identification.
 
 BLAS threads: the dense problems here are small (n <= a few thousand) and the estimator shares the
 machine with a simulator and DDS. A multi-threaded OpenBLAS then spins against the other processes

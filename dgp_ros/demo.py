@@ -1,4 +1,5 @@
-"""End-to-end demo: ``python -m dgp_ros.demo`` (scripts/run_demo.sh, the README's main job).
+"""
+End-to-end demo: ``python -m dgp_ros.demo`` (scripts/run_demo.sh, the README's main job).
 
 Starts ``sim_bridge`` (JSBSim A320 approach in periodic wind) and the ``dgp_estimator`` as two OS
 processes talking over real DDS (random ROS_DOMAIN_ID, localhost-only discovery), flies the whole
@@ -147,8 +148,8 @@ def _synthetic_publisher(node, rate_hz: float, duration_s: float, rtf: float):
 def analyse(rec: _Recorder) -> dict:
     """Pair measurements and answers by stamp; NMSE, power statistics, latency."""
     stamps = sorted(set(rec.meas) & set(rec.est))
-    out = dict(measurements=len(rec.meas), answers=len(rec.est), paired=len(stamps),
-               matrices=rec.n_matrix)
+    out = {'measurements': len(rec.meas), 'answers': len(rec.est), 'paired': len(stamps),
+           'matrices': rec.n_matrix}
     if not stamps:
         return out
     names = rec.meas[stamps[0]][1] or OUT_NAMES
@@ -172,8 +173,8 @@ def analyse(rec: _Recorder) -> dict:
         negative_power_fraction=float(np.mean(powers < 0)),
         negative_power_count=int(np.sum(powers < 0)), power_messages=int(powers.size),
         measured_negative_power_fraction=float(np.mean(p_meas < 0)),
-        latency_end_to_end_ms=dict(median=float(np.median(lat) * 1e3),
-                                   p99=float(np.percentile(lat, 99) * 1e3)),
+        latency_end_to_end_ms={'median': float(np.median(lat) * 1e3),
+                               'p99': float(np.percentile(lat, 99) * 1e3)},
         # of the measurements this process saw, the fraction the estimator answered (answers
         # to measurements published before our subscription matched are not counted)
         answered_fraction=len(stamps) / max(len(rec.meas), 1),

@@ -1,4 +1,5 @@
-"""The one ``sensor_msgs/JointState`` converter of the package (no rclpy).
+"""
+The one ``sensor_msgs/JointState`` converter of the package (no rclpy).
 
 The estimator node, ``dgp-replay``, the demo and the bag tools all turn a JointState into a
 :class:`JointStateSample` with :func:`joint_state_sample`, so that a message gives the same numbers
@@ -11,8 +12,8 @@ a replayed bag reproduces the node's estimates bit for bit only if both compute 
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import Any
 
 import numpy as np
@@ -22,7 +23,8 @@ __all__ = ['JointStateSample', 'joint_state_sample', 'stamp_seconds']
 
 @dataclass(frozen=True, eq=False)
 class JointStateSample:
-    """One JointState measurement as plain Python / numpy values.
+    """
+    One JointState measurement as plain Python / numpy values.
 
     Attributes
     ----------
@@ -44,6 +46,7 @@ class JointStateSample:
     other or with ``names``. The consumer (:meth:`dgp_ros.online.OnlineEstimator.process`)
     validates the content and counts the rejection reason. Equality is identity (the fields
     hold arrays); compare the fields to compare two samples.
+
     """
 
     stamp_s: float
@@ -54,7 +57,8 @@ class JointStateSample:
 
 
 def stamp_seconds(stamp: Any) -> float:
-    """A ``builtin_interfaces/Time`` (anything with ``sec`` and ``nanosec``) in seconds.
+    """
+    Convert a ``builtin_interfaces/Time`` (anything with ``sec`` and ``nanosec``) to seconds.
 
     Parameters
     ----------
@@ -66,6 +70,7 @@ def stamp_seconds(stamp: Any) -> float:
     float
         ``int(sec) + 1e-9 * int(nanosec)``; NaN if either field is missing or not an integer
         (the estimator rejects a NaN stamp as ``bad_stamp``).
+
     """
     try:
         return int(stamp.sec) + 1e-9 * int(stamp.nanosec)
@@ -96,7 +101,8 @@ def _names(msg: Any) -> list:
 
 
 def joint_state_sample(msg: Any) -> JointStateSample:
-    """Convert a JointState message (rclpy or rosbags) to a :class:`JointStateSample`.
+    """
+    Convert a JointState message (rclpy or rosbags) to a :class:`JointStateSample`.
 
     Parameters
     ----------
@@ -115,6 +121,7 @@ def joint_state_sample(msg: Any) -> JointStateSample:
     non-numeric array field an empty array, a missing or non-iterable ``name`` an empty list.
     Name entries are kept as they are (not converted to ``str``), so that the estimator, which
     validates every field, can still reject bad names as such.
+
     """
     try:
         stamp = msg.header.stamp

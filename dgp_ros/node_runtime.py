@@ -1,4 +1,5 @@
-"""What every node process of this package shares: --help, parameters, and a clean exit (rclpy).
+"""
+What every node process of this package shares: --help, parameters, and a clean exit (rclpy).
 
 * ``--help`` prints the parameters (default, range, description) and starts nothing.
 * Parameters are declared from a table of ``online.config.ParamSpec`` with
@@ -18,9 +19,9 @@ import sys
 import threading
 from typing import Callable, Iterable, List
 
-import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
@@ -59,7 +60,8 @@ def _hint(name: str, known) -> str:
 
 
 def unknown_overrides(node) -> List[str]:
-    """Overrides given to ``node`` (``-p``, params files) for parameters it did not declare.
+    """
+    List the overrides given to ``node`` (``-p``, params files) for parameters it did not declare.
 
     rclpy has no public list of the overrides: a throw-away node of the same name declares them
     all automatically, and the difference is what the node does not know.
@@ -77,7 +79,7 @@ def unknown_overrides(node) -> List[str]:
 
 
 def check_unknown_overrides(node) -> None:
-    """ValueError naming the overrides the node does not have."""
+    """Raise ValueError naming the overrides the node does not have."""
     unknown = unknown_overrides(node)
     if unknown:
         known = node.list_parameters([], 0).names
@@ -86,10 +88,12 @@ def check_unknown_overrides(node) -> None:
 
 
 def reject_unknown(node, params) -> SetParametersResult:
-    """A failed result naming the parameters ``node`` does not have, or None (all known).
+    """
+    Return a failed result naming the parameters ``node`` does not have, or None (all known).
 
     The node must be created with ``allow_undeclared_parameters=True`` so that this check (and
-    not rclpy's, whose reason has no names) sees a set of an unknown name."""
+    not rclpy's, whose reason has no names) sees a set of an unknown name.
+    """
     unknown = [p.name for p in params if not node.has_parameter(p.name)]
     if not unknown:
         return None
@@ -99,7 +103,7 @@ def reject_unknown(node, params) -> SetParametersResult:
 
 
 def help_text(prog: str, description: str, specs: Iterable, remaps: str = '') -> str:
-    """The ``--help`` text: usage and every parameter with its default and range."""
+    """Return the ``--help`` text: usage and every parameter with its default and range."""
     import json
     import textwrap
     lines = [f'usage: {prog} [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE '
@@ -122,7 +126,10 @@ def _wants_help(argv: List[str]) -> bool:
 
 
 def _executor(context):
-    """The single-threaded executor; rclpy's EventsExecutor with ``DGP_EXECUTOR=events`` (about
+    """
+    Make the node's executor.
+
+    The single-threaded executor; rclpy's EventsExecutor with ``DGP_EXECUTOR=events`` (about
     30 % less CPU per message at 1 kHz while it keeps up).
 
     Not the default: the EventsExecutor queues one event per received message, unbounded and
@@ -131,7 +138,8 @@ def _executor(context):
     machine) then makes it fall behind for good: no /diagnostics, ``~/refit`` unanswered after
     20 s, memory growing. The wait-set executor drops the oldest messages (``queue_depth``) and
     answers services within ~0.1 s under the same flood. Only ``spin_once`` is used: the
-    EventsExecutor of the Jazzy wheels busy-loops in ``spin()``."""
+    EventsExecutor of the Jazzy wheels busy-loops in ``spin()``.
+    """
     if os.environ.get('DGP_EXECUTOR', 'single') == 'events':
         try:
             from rclpy.experimental import EventsExecutor
@@ -143,7 +151,8 @@ def _executor(context):
 
 
 def run(prog: str, make_node: Callable, help_message: str, args=None) -> int:
-    """Run one node until SIGINT/SIGTERM (or ``node.done``); returns the exit status.
+    """
+    Run one node until SIGINT/SIGTERM (or ``node.done``); returns the exit status.
 
     ``make_node()`` builds the node (ValueError / ParameterException: invalid parameters, exit
     2); at the end ``node.shutdown()`` (if it has one) runs while the context is still valid.

@@ -1,12 +1,13 @@
-"""A parameter table entry and its check: shared by the nodes, the CLIs and the YAML files.
+"""
+A parameter table entry and its check: shared by the nodes, the CLIs and the YAML files.
 
 Pure Python: the online estimator validates its configuration with it, the nodes declare their
 ROS parameters (with ``ParameterDescriptor`` ranges) from it and print ``--help`` from it.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import Any, Optional, Tuple
 
 import numpy as np
@@ -16,11 +17,15 @@ __all__ = ['ParamSpec', 'check_spec']
 
 @dataclass(frozen=True)
 class ParamSpec:
-    """One parameter: type ('int' | 'float' | 'str' | 'bool' | 'str[]' | 'float[]'), default,
-    description (with units), allowed choices or closed range ``[low, high]``."""
+    """
+    One parameter.
+
+    Type ('int' | 'float' | 'str' | 'bool' | 'str[]' | 'float[]'), default, description (with
+    units), allowed choices or closed range ``[low, high]``.
+    """
 
     name: str
-    type: str
+    type: str  # noqa: A003 (a dataclass field: it shadows nothing)
     default: Any
     description: str
     choices: Tuple[str, ...] = ()
@@ -42,7 +47,7 @@ def _is_number(v) -> bool:
 
 
 def check_spec(spec: ParamSpec, v) -> None:
-    """ValueError naming the parameter when ``v`` does not fit ``spec``."""
+    """Raise ValueError naming the parameter when ``v`` does not fit ``spec``."""
 
     def fail(why):
         raise ValueError(f'{spec.name}={v!r}: {why}')

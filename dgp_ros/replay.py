@@ -1,4 +1,5 @@
-"""``dgp-replay``: offline evaluation of a rosbag2 bag, without DDS.
+"""
+``dgp-replay``: offline evaluation of a rosbag2 bag, without DDS.
 
 ::
 
@@ -46,11 +47,11 @@ import csv
 import json
 import math
 import os
+from pathlib import Path
 import signal
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -63,14 +64,20 @@ EXIT_OK, EXIT_ERROR = 0, 2
 
 
 class ReplayError(Exception):
-    """Bad joints / parameters: a one-line message for the user (bag and topic problems are
-    :class:`~dgp_ros.bags.BagError`)."""
+    """
+    Bad joints / parameters.
+
+    A one-line message for the user (bag and topic problems are :class:`~dgp_ros.bags.BagError`).
+    """
 
 
 # ----------------------------------------------------------------------------------- progress
 class Progress:
-    """A plain-stderr progress bar (no dependency). Redraws at most every ``period`` s on a
-    terminal; on a pipe/file, prints a line every 10 %."""
+    """
+    A plain-stderr progress bar (no dependency).
+
+    Redraws at most every ``period`` s on a terminal; on a pipe/file, prints a line every 10 %.
+    """
 
     def __init__(self, total: int, enabled: bool = True, stream=None, period: float = 0.2,
                  width: int = 30):
@@ -141,14 +148,15 @@ def load_params_file(path) -> dict:
 
 
 def build_config(params: Optional[dict] = None, **overrides):
-    """EstimatorConfig from parameters + overrides, with ``refit_mode='sync'`` (deterministic).
+    """
+    Build EstimatorConfig from parameters + overrides, with ``refit_mode='sync'`` (deterministic).
 
     ``params`` (e.g. a node parameter file) may hold node-only names, which are ignored;
     an unknown name in ``overrides`` is an error.
     """
     from dgp_ros.online import EstimatorConfig
     d = {}
-    names = {f for f in EstimatorConfig.__dataclass_fields__}
+    names = set(EstimatorConfig.__dataclass_fields__)
     for k, v in (params or {}).items():
         if k in names:  # node-only parameters (diagnostics_period_s, use_sim_time) are ignored
             d[k] = v
@@ -164,7 +172,8 @@ def build_config(params: Optional[dict] = None, **overrides):
 # ------------------------------------------------------------------------------------ replay
 def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False,
            stamp: str = 'header', on_estimate=None):
-    """Stream a bag through an OnlineEstimator; returns ``(estimates, estimator, info)``.
+    """
+    Stream a bag through an OnlineEstimator; returns ``(estimates, estimator, info)``.
 
     ``estimates`` is the list of :class:`dgp_ros.online.Estimate` (rejected messages have none);
     ``on_estimate(e)`` is called with each as it comes (partial outputs); ``info`` has the
@@ -211,16 +220,20 @@ def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False
     finally:
         reader.close()
         est.close()
-    info = dict(topic=topic, messages=n, undecodable=undecodable,
-                wall_time_s=time.perf_counter() - t0, process_time_s=t_proc,
-                bag_joints=seen_names or [], interrupted=interrupted)
+    info = {'topic': topic, 'messages': n, 'undecodable': undecodable,
+            'wall_time_s': time.perf_counter() - t0, 'process_time_s': t_proc,
+            'bag_joints': seen_names or [], 'interrupted': interrupted}
     return out, est, info
 
 
 # ----------------------------------------------------------------------------------- outputs
 def _nmse(err, y):
-    """(NMSE, MSE); inf if an estimate is non-finite or overflows (JSON writes it as null,
-    ``huge_or_nonfinite`` in the summary says why)."""
+    """
+    Compute the NMSE and MSE.
+
+    (NMSE, MSE); inf if an estimate is non-finite or overflows (JSON writes it as null,
+    ``huge_or_nonfinite`` in the summary says why).
+    """
     var = float(np.var(y)) if y.size else float('nan')
     with np.errstate(over='ignore', invalid='ignore'):
         mse = float(np.mean(np.square(err))) if err.size else float('nan')
@@ -248,26 +261,30 @@ def arrays_of(estimates):
     """Stack estimates into arrays: t (k,), qd/tau/tau_hat/stddev (k, N), P/P_hat (k,)."""
     if not estimates:
         return None
-    return dict(
-        t=np.array([e.stamp_s for e in estimates]),
-        qd=np.array([e.qd for e in estimates]),
-        tau=np.array([e.tau for e in estimates]),
-        tau_hat=np.array([e.tau_hat for e in estimates]),
-        stddev=np.array([e.stddev for e in estimates]),
-        P=np.array([e.measured_power for e in estimates]),
-        P_hat=np.array([e.power for e in estimates]),
-        source=np.array([e.source for e in estimates]),
-        added=np.array([bool(e.added) for e in estimates]),
-        proc=np.array([e.processing_time_s for e in estimates]),
-    )
+    return {
+        't': np.array([e.stamp_s for e in estimates]),
+        'qd': np.array([e.qd for e in estimates]),
+        'tau': np.array([e.tau for e in estimates]),
+        'tau_hat': np.array([e.tau_hat for e in estimates]),
+        'stddev': np.array([e.stddev for e in estimates]),
+        'P': np.array([e.measured_power for e in estimates]),
+        'P_hat': np.array([e.power for e in estimates]),
+        'source': np.array([e.source for e in estimates]),
+        'added': np.array([bool(e.added) for e in estimates]),
+        'proc': np.array([e.processing_time_s for e in estimates]),
+    }
 
 
 CSV_FIXED = ('P', 'P_hat', 'source', 'added')
 
 
 class CsvWriter:
-    """``estimates.csv`` written row by row as estimates come (flushed about once a second), so
-    that an interrupted or killed replay leaves what it had."""
+    """
+    Write ``estimates.csv`` as the estimates come.
+
+    ``estimates.csv`` written row by row as estimates come (flushed about once a second), so
+    that an interrupted or killed replay leaves what it had.
+    """
 
     def __init__(self, path):
         self.path = path
@@ -309,18 +326,22 @@ def write_csv(path, estimates, names=None):
 
 
 def _final_certificate(est) -> dict:
-    """The certificate of the final model, re-proven first if updates left it stale (offline,
-    so the branch-and-bound may take its time here)."""
+    """
+    Return the certificate of the final model.
+
+    It is re-proven first if updates left it stale (offline, so the branch-and-bound may take its
+    time here).
+    """
     model = est.model
     if model is None:
-        return dict(certified=False, margin=None, method='', domain=None, stale=False)
+        return {'certified': False, 'margin': None, 'method': '', 'domain': None, 'stale': False}
     cert = model.certificate()
     if cert.stale:
         cert = model.recertify()
-    return dict(certified=bool(cert.certified), margin=float(cert.margin), method=cert.method,
-                domain=None if cert.domain is None else [np.asarray(v).tolist()
-                                                         for v in cert.domain],
-                stale=bool(cert.stale), correction_scale=float(cert.correction_scale))
+    return {'certified': bool(cert.certified), 'margin': float(cert.margin), 'method': cert.method,
+            'domain': None if cert.domain is None else [np.asarray(v).tolist()
+                                                        for v in cert.domain],
+            'stale': bool(cert.stale), 'correction_scale': float(cert.correction_scale)}
 
 
 def summarize(bag, estimates, est, info, names, mass=None) -> dict:
@@ -335,55 +356,55 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
             nmse_m, _ = _nmse(err[model, i], A['tau'][model, i])
             th = A['tau_hat'][:, i]
             scale = 1e6 * max(float(np.max(np.abs(A['tau'][:, i]))), 1.0)
-            d = dict(nmse=nmse, nmse_model_only=nmse_m, rmse=math.sqrt(mse),
-                     median_abs_error=float(np.median(np.abs(err[:, i]))),
-                     # estimates that are non-finite or > 1e6 x the largest measurement
-                     huge_or_nonfinite=int(np.sum(~np.isfinite(th) | (np.abs(th) > scale))),
-                     mean_stddev=float(np.mean(A['stddev'][:, i])))
+            d = {'nmse': nmse, 'nmse_model_only': nmse_m, 'rmse': math.sqrt(mse),
+                 'median_abs_error': float(np.median(np.abs(err[:, i]))),
+                 # estimates that are non-finite or > 1e6 x the largest measurement
+                 'huge_or_nonfinite': int(np.sum(~np.isfinite(th) | (np.abs(th) > scale))),
+                 'mean_stddev': float(np.mean(A['stddev'][:, i]))}
             if mass:
                 d['rmse_per_mass'] = math.sqrt(mse) / mass
             per[j] = d
     k = 0 if A is None else len(A['t'])
     durs = list(est.health.refit_durations)
-    s = dict(
-        bag=str(bag), topic=info['topic'], joints=list(names),
-        messages=info['messages'], estimates=k,
-        duration_s=float(A['t'][-1] - A['t'][0]) if k else 0.0,
-        nmse={j: per[j]['nmse'] for j in per},
-        nmse_mean=float(np.mean([per[j]['nmse'] for j in per])) if per else float('nan'),
-        outputs=per,
-        negative_power_fraction=float(np.mean(A['P_hat'] < 0)) if k else float('nan'),
-        min_power_estimate=float(np.min(A['P_hat'])) if k else float('nan'),
-        measured_negative_power_fraction=float(np.mean(A['P'] < 0)) if k else float('nan'),
-        sources={src: int(np.sum(A['source'] == src)) for src in ('model', 'prior', 'fallback')}
+    s = {
+        'bag': str(bag), 'topic': info['topic'], 'joints': list(names),
+        'messages': info['messages'], 'estimates': k,
+        'duration_s': float(A['t'][-1] - A['t'][0]) if k else 0.0,
+        'nmse': {j: per[j]['nmse'] for j in per},
+        'nmse_mean': float(np.mean([per[j]['nmse'] for j in per])) if per else float('nan'),
+        'outputs': per,
+        'negative_power_fraction': float(np.mean(A['P_hat'] < 0)) if k else float('nan'),
+        'min_power_estimate': float(np.min(A['P_hat'])) if k else float('nan'),
+        'measured_negative_power_fraction': float(np.mean(A['P'] < 0)) if k else float('nan'),
+        'sources': {src: int(np.sum(A['source'] == src)) for src in ('model', 'prior', 'fallback')}
         if k else {},
-        samples_added=diag['samples_added'], samples_skipped=diag['samples_skipped'],
-        samples_rate_limited=diag['samples_rate_limited'],
-        refits=dict(started=diag['refits_started'], ok=diag['refits_ok'],
-                    failed=diag['refits_failed'], last_error=diag['last_refit_error']),
-        rejected=dict(diag['rejected'], undecodable=info['undecodable']),
-        rejected_total=diag['rejected_total'] + info['undecodable'],
-        time_jumps_back=diag['time_jumps_back'],
-        passivity_fallbacks=diag['passivity_fallbacks'],
-        certificate=_final_certificate(est),
-        status=dict(level=diag['level'], message=diag['message']),
-        learned_negative_power_fraction=diag['negative_power_fraction'],
-        interrupted=info.get('interrupted', False),
-        timings=dict(
-            wall_time_s=info['wall_time_s'],
-            wall_per_data_second=(info['wall_time_s'] / float(A['t'][-1] - A['t'][0])
-                                  if k > 1 and A['t'][-1] > A['t'][0] else float('nan')),
-            process_total_s=info['process_time_s'],
-            process_per_msg_median_s=float(np.median(A['proc'])) if k else float('nan'),
-            process_per_msg_p99_s=float(np.percentile(A['proc'], 99)) if k else float('nan'),
-            process_per_msg_max_s=float(np.max(A['proc'])) if k else float('nan'),
-            refit_count=len(durs), refit_total_s=float(np.sum(durs)) if durs else 0.0,
-            refit_mean_s=float(np.mean(durs)) if durs else float('nan'),
-            refit_max_s=float(np.max(durs)) if durs else float('nan'),
-        ),
-        mass_kg=mass,
-        config=est.config.to_dict(),
-    )
+        'samples_added': diag['samples_added'], 'samples_skipped': diag['samples_skipped'],
+        'samples_rate_limited': diag['samples_rate_limited'],
+        'refits': {'started': diag['refits_started'], 'ok': diag['refits_ok'],
+                   'failed': diag['refits_failed'], 'last_error': diag['last_refit_error']},
+        'rejected': dict(diag['rejected'], undecodable=info['undecodable']),
+        'rejected_total': diag['rejected_total'] + info['undecodable'],
+        'time_jumps_back': diag['time_jumps_back'],
+        'passivity_fallbacks': diag['passivity_fallbacks'],
+        'certificate': _final_certificate(est),
+        'status': {'level': diag['level'], 'message': diag['message']},
+        'learned_negative_power_fraction': diag['negative_power_fraction'],
+        'interrupted': info.get('interrupted', False),
+        'timings': {
+            'wall_time_s': info['wall_time_s'],
+            'wall_per_data_second': (info['wall_time_s'] / float(A['t'][-1] - A['t'][0])
+                                     if k > 1 and A['t'][-1] > A['t'][0] else float('nan')),
+            'process_total_s': info['process_time_s'],
+            'process_per_msg_median_s': float(np.median(A['proc'])) if k else float('nan'),
+            'process_per_msg_p99_s': float(np.percentile(A['proc'], 99)) if k else float('nan'),
+            'process_per_msg_max_s': float(np.max(A['proc'])) if k else float('nan'),
+            'refit_count': len(durs), 'refit_total_s': float(np.sum(durs)) if durs else 0.0,
+            'refit_mean_s': float(np.mean(durs)) if durs else float('nan'),
+            'refit_max_s': float(np.max(durs)) if durs else float('nan'),
+        },
+        'mass_kg': mass,
+        'config': est.config.to_dict(),
+    }
     return _clean(s)
 
 
@@ -464,7 +485,8 @@ def _write_summary(out: Path, summary: dict) -> None:
 
 def run(bag, out, topic=None, config=None, mass=None, plots=True, progress=False,
         stamp='header', save_model: Optional[str] = None) -> dict:
-    """Replay ``bag`` and write the outputs to ``out``; returns the summary dict.
+    """
+    Replay ``bag`` and write the outputs to ``out``; returns the summary dict.
 
     ``estimates.csv`` grows as the replay runs; ``summary.json`` (and the plots) are written at
     the end, also after a SIGINT (``summary['interrupted']``). ``save_model``: write the final
@@ -544,7 +566,7 @@ def main(argv=None) -> int:
     ap.add_argument('--params', help='ROS 2 parameter file for the estimator (ros__parameters)')
     ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE',
                     help='estimator parameter override (YAML value), the same names as the '
-                         'node\'s (estimator --help); repeatable')
+                         "node's (estimator --help); repeatable")
     ap.add_argument('--stamp', choices=('header', 'bag'), default='header',
                     help='time given to the estimator: header.stamp (as the node) or bag time')
     ap.add_argument('--no-plots', action='store_true')

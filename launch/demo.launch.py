@@ -1,4 +1,7 @@
-"""Start sim_bridge and the D-GP estimator (full ROS 2 install: ``ros2 launch dgp_ros demo.launch.py``).
+"""
+Start sim_bridge and the D-GP estimator.
+
+Full ROS 2 install: ``ros2 launch dgp_ros demo.launch.py``.
 
 Arguments: model (full|diag|ard), passivity (none|paper|certified|projected), real_time_factor,
 use_sim_time (the estimator then follows sim_bridge's /clock).

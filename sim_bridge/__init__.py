@@ -1,4 +1,5 @@
-"""sim_bridge: JSBSim A320 approach in periodic wind, as generalized velocities and forces.
+"""
+sim_bridge: JSBSim A320 approach in periodic wind, as generalized velocities and forces.
 
 Pure Python (JSBSim + numpy); the only ROS code is ``sim_bridge.node``.
 
@@ -36,7 +37,7 @@ the full-flap stall at ~16 deg, load factor in (0, 2) g, the flaps-extended limi
 """
 from .config import JOINT_NAMES, MAX_WIND_MPS, SimConfig
 from .simulator import (ApproachSimulator, Autopilot, FrozenAero, PeriodicWind, SimState,
-                        TrimError, simulate_approach)
+                        simulate_approach, TrimError)
 
 __all__ = ['SimConfig', 'ApproachSimulator', 'FrozenAero', 'simulate_approach', 'SimState',
            'PeriodicWind', 'Autopilot', 'TrimError', 'JOINT_NAMES', 'MAX_WIND_MPS']

@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 import math
 import os
-from dataclasses import dataclass
 from typing import Optional, Tuple
 
 COORDINATES = ('angle', 'body')
@@ -34,7 +34,8 @@ def _triple(name, value):
     except ValueError:
         raise ValueError(f'{name} must contain numbers only, got {value!r}') from None
     if len(vals) != 3:
-        raise ValueError(f'{name} must have exactly 3 entries (north, east, down), got {len(vals)}')
+        raise ValueError(f'{name} must have exactly 3 entries (north, east, down), '
+                         f'got {len(vals)}')
     if not all(math.isfinite(v) for v in vals):
         raise ValueError(f'{name} must be finite, got {vals}')
     return vals
@@ -42,7 +43,8 @@ def _triple(name, value):
 
 @dataclass
 class SimConfig:
-    """Everything that defines one approach; two equal configs give bit-identical runs.
+    """
+    Everything that defines one approach; two equal configs give bit-identical runs.
 
     Wind (m/s) per axis i of the local runway frame (north = along the runway, the aircraft flies
     heading 0; east = cross-wind; down): ``w_i(t) = r(t) * A_i * sin(2 pi f_i t + phi_i)`` with a
@@ -85,14 +87,15 @@ class SimConfig:
     def validate(self) -> 'SimConfig':
         """Raise ValueError with a clear message on the first invalid field; return self."""
         if self.coordinates not in COORDINATES:
-            raise ValueError(f"coordinates must be one of {COORDINATES}, got {self.coordinates!r}")
+            raise ValueError(f'coordinates must be one of {COORDINATES}, got {self.coordinates!r}')
         for name in ('rate_hz', 'integration_hz'):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 < v <= 1000:
                 raise ValueError(f'{name} must be a number in (0, 1000] Hz, got {v!r}')
         amp = _triple('wind_amplitude', self.wind_amplitude)
         if any(abs(a) > MAX_WIND_MPS for a in amp):
-            raise ValueError(f'wind_amplitude must be within +-{MAX_WIND_MPS} m/s per axis, got {amp}')
+            raise ValueError(f'wind_amplitude must be within +-{MAX_WIND_MPS} m/s per axis, '
+                             f'got {amp}')
         freq = _triple('wind_frequency', self.wind_frequency)
         if any(f < 0 or f > 10 for f in freq):
             raise ValueError(f'wind_frequency must be in [0, 10] Hz per axis, got {freq}')
@@ -105,11 +108,14 @@ class SimConfig:
         if not os.path.isfile(model):
             raise ValueError(f'aircraft {self.aircraft!r} not found: no JSBSim model at {model}')
         if not 100 <= self.approach_speed_kts <= 300:
-            raise ValueError(f'approach_speed_kts must be in [100, 300] kt, got {self.approach_speed_kts!r}')
+            raise ValueError(f'approach_speed_kts must be in [100, 300] kt, '
+                             f'got {self.approach_speed_kts!r}')
         if not 1 <= self.glide_slope_deg <= 6:
-            raise ValueError(f'glide_slope_deg must be in [1, 6] deg, got {self.glide_slope_deg!r}')
+            raise ValueError(f'glide_slope_deg must be in [1, 6] deg, '
+                             f'got {self.glide_slope_deg!r}')
         if not 200 <= self.start_height_ft <= 5000:
-            raise ValueError(f'start_height_ft must be in [200, 5000] ft, got {self.start_height_ft!r}')
+            raise ValueError(f'start_height_ft must be in [200, 5000] ft, '
+                             f'got {self.start_height_ft!r}')
         if not 0 <= self.flare_height_ft < self.start_height_ft / 2:
             raise ValueError('flare_height_ft must be in [0, start_height_ft/2), '
                              f'got {self.flare_height_ft!r}')
@@ -134,7 +140,7 @@ class SimConfig:
 
     @property
     def dt(self) -> float:
-        """JSBSim integration step (s)."""
+        """Get the JSBSim integration step (s)."""
         return 1.0 / (self.rate_hz * self.substeps)
 
     def to_dict(self) -> dict:

@@ -1,4 +1,5 @@
-"""Export one simulated approach to .npz: ``python -m sim_bridge.export --out FILE.npz``.
+"""
+Export one simulated approach to .npz: ``python -m sim_bridge.export --out FILE.npz``.
 
 Arrays: t (k,), q (k, 3), tau (k, 3), force_wind (k, 3) plus telemetry; metadata: mass_kg,
 trim_airspeed_mps, joint_names, config (JSON string of SimConfig).
@@ -21,14 +22,15 @@ def _triple(text):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m sim_bridge.export', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m sim_bridge.export',
+                                 description=__doc__.split('\n')[0])
     ap.add_argument('--out', required=True, help='output .npz file')
     ap.add_argument('--coordinates', choices=['angle', 'body'], default='angle')
     ap.add_argument('--rate-hz', type=float, default=60.0)
     ap.add_argument('--wind-amplitude', type=_triple, default=None, metavar='AN,AE,AD',
                     help='wind amplitudes north,east,down (m/s)')
     args = ap.parse_args(argv)
-    kw = dict(coordinates=args.coordinates, rate_hz=args.rate_hz)
+    kw = {'coordinates': args.coordinates, 'rate_hz': args.rate_hz}
     if args.wind_amplitude is not None:
         kw['wind_amplitude'] = args.wind_amplitude
     try:

@@ -1,4 +1,5 @@
-"""sim_bridge ROS 2 node: publishes the simulated A320 approach (thin wrapper, see simulator.py).
+"""
+sim_bridge ROS 2 node: publishes the simulated A320 approach (thin wrapper, see simulator.py).
 
 Topics: ``generalized_state`` (sensor_msgs/JointState: name, velocity = q, effort = tau),
 ``aero_wrench`` (geometry_msgs/WrenchStamped in frame ``wind``: the aerodynamic force vector
@@ -44,7 +45,8 @@ SPECS = [
               '0 = unlimited', low=0.0, high=1e9),
 ]
 PARAMETERS = {p.name: p for p in SPECS}
-CONFIG_KEYS = ('rate_hz', 'wind_amplitude', 'wind_frequency', 'wind_phase', 'coordinates', 'aircraft')
+CONFIG_KEYS = ('rate_hz', 'wind_amplitude', 'wind_frequency', 'wind_phase', 'coordinates',
+               'aircraft')
 
 
 def _to_time(t: float) -> Time:
@@ -101,7 +103,8 @@ class SimBridgeNode(Node):
             return bad
         try:
             for p in params:
-                if p.name == 'publish_clock' and p.value != self.get_parameter('publish_clock').value:
+                if p.name == 'publish_clock' and \
+                        p.value != self.get_parameter('publish_clock').value:
                     raise ValueError('publish_clock can only be set at start-up')
             check_values(self._values(params))
         except (ValueError, TypeError) as exc:

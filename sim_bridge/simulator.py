@@ -1,4 +1,5 @@
-"""JSBSim A320 approach: trim, autopilot, periodic wind and aerodynamic read-out (no ROS).
+"""
+JSBSim A320 approach: trim, autopilot, periodic wind and aerodynamic read-out (no ROS).
 
 Sign conventions (checked in test/test_sim_physics.py against the installed JSBSim 1.3.3):
 JSBSim's ``forces/fw[xyz]-aero-lbs`` are the *magnitudes* ``[drag, side, lift]`` (drag > 0 and
@@ -11,8 +12,8 @@ resistive force is ``tau = -F_wind = [drag, -side, lift]`` (DESIGN), and in body
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import Optional
 
 import numpy as np
@@ -104,7 +105,8 @@ def _set_approach_ic(fdm, cfg: SimConfig, speed_kts: float):
     fdm['ic/phi-deg'] = 0.0
     fdm['ic/vc-kts'] = speed_kts
     fdm['ic/gamma-deg'] = -cfg.glide_slope_deg
-    for prop in ('atmosphere/wind-north-fps', 'atmosphere/wind-east-fps', 'atmosphere/wind-down-fps'):
+    for prop in ('atmosphere/wind-north-fps', 'atmosphere/wind-east-fps',
+                 'atmosphere/wind-down-fps'):
         fdm[prop] = 0.0
     # Landing configuration: full flaps, gear down (set positions too: no transition at t=0).
     fdm['fcs/flap-cmd-norm'] = 1.0
@@ -136,7 +138,8 @@ def trim_approach(fdm, cfg: SimConfig):
 
 
 class Autopilot:
-    """Glide-path tracking by pitch attitude (elevator), PI airspeed hold (throttle), wings level.
+    """
+    Glide-path tracking by pitch attitude (elevator), PI airspeed hold (throttle), wings level.
 
     All gains are in JSBSim normalised command units per rad, rad/s, m or m/s.
     """
@@ -192,7 +195,8 @@ class Autopilot:
 
         e_theta = theta_cmd - theta
         self.int_theta = min(max(self.int_theta + e_theta * dt, -0.5), 0.5)
-        elev = tr['elevator'] - (self.K_THETA * e_theta + self.K_THETA_I * self.int_theta - self.K_Q * q)
+        elev = tr['elevator'] - (self.K_THETA * e_theta + self.K_THETA_I * self.int_theta
+                                 - self.K_Q * q)
         fdm['fcs/elevator-cmd-norm'] = min(max(elev - tr['pitch_trim'], -1.0), 1.0)
 
         e_v = tr['airspeed'] - vt
@@ -208,7 +212,8 @@ class Autopilot:
 
 
 class ApproachSimulator:
-    """Trimmed A320 on a -3 deg glide path in periodic wind, flown to touch-down.
+    """
+    Trimmed A320 on a -3 deg glide path in periodic wind, flown to touch-down.
 
     >>> sim = ApproachSimulator(SimConfig()); sim.reset()
     >>> s = sim.step()        # SimState: s.t, s.q, s.tau, s.force_wind, s.touched_down, ...
@@ -342,7 +347,8 @@ class ApproachSimulator:
 
 
 def simulate_approach(cfg: Optional[SimConfig] = None, max_time_s: Optional[float] = None) -> dict:
-    """Fly one approach offline; return numpy arrays and metadata.
+    """
+    Fly one approach offline; return numpy arrays and metadata.
 
     Keys: ``t`` (k,), ``q`` (k, 3), ``tau`` (k, 3), ``force_wind`` (k, 3), ``force_body`` (k, 3),
     telemetry arrays ``alpha, beta, airspeed, altitude_agl_m, wheel_height_m, along_track_m,
@@ -369,13 +375,15 @@ def simulate_approach(cfg: Optional[SimConfig] = None, max_time_s: Optional[floa
 
 
 class FrozenAero:
-    """Aerodynamic force of the trimmed approach configuration at frozen states.
+    """
+    Aerodynamic force of the trimmed approach configuration at frozen states.
 
     Flaps 40 deg, gear down, elevator at its glide-path trim, zero angular rates and alpha-dot;
     JSBSim evaluates its own aerodynamic tables (``run_ic`` at the trim altitude) for every query
     point.  ``tau(Q)`` takes ``Q`` (k, 3) in the configured coordinates ([alpha, beta, V] or
     body [u, v, w]) and returns the resistive force (k, 3) with the same convention as
-    ``ApproachSimulator`` (``[drag, -side, lift]`` or ``-F_body``).  Zero airspeed gives zero force.
+    ``ApproachSimulator`` (``[drag, -side, lift]`` or ``-F_body``).  Zero airspeed gives zero
+    force.
     """
 
     def __init__(self, cfg: Optional[SimConfig] = None):

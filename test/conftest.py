@@ -1,4 +1,5 @@
-"""Session-wide test isolation.
+"""
+Session-wide test isolation.
 
 DDS: every test session gets its own ROS_DOMAIN_ID and localhost-only discovery, set before any
 rclpy context exists, so parallel sessions on one machine (or CI next to a developer) never see
@@ -22,7 +23,7 @@ _DOMAIN_LOCK = []      # the open lock file: the claim lasts as long as this pro
 
 
 def _claim_domain_id() -> int:
-    """A ROS domain id in 1..101 that no other test session on this machine holds."""
+    """Claim a ROS domain id in 1..101 that no other test session on this machine holds."""
     ids = list(range(1, 102))
     random.SystemRandom().shuffle(ids)
     for i in ids:

@@ -1,8 +1,11 @@
-"""Smoke test of ``bench/hostile.py --quick`` (the hardening issue's adversarial trial): it runs
-into a tmp dir (in-process and live over DDS, in a domain of its own), writes its section of
-RELIABILITY.md (not BENCHMARKS.md), prints nothing on stdout, and the invariants hold: no
-crash, no non-finite or non-passive output, learning not frozen, no file touched but the
-model, nothing imported from a bag."""
+"""
+Smoke test of ``bench/hostile.py --quick`` (the hardening issue's adversarial trial).
+
+It runs into a tmp dir (in-process and live over DDS, in a domain of its own), writes its section
+of RELIABILITY.md (not BENCHMARKS.md), prints nothing on stdout, and the invariants hold: no crash,
+no non-finite or non-passive output, learning not frozen, no file touched but the model, nothing
+imported from a bag.
+"""
 import os
 import re
 import subprocess
@@ -27,8 +30,11 @@ def hostile(tmp_path_factory):
 
 
 def _summary(section):
-    """The summary table's rows by class number ('1.' .. '4.'); cells split on unescaped
-    pipes."""
+    """
+    Return the summary table's rows by class number ('1.' ..
+
+    '4.'); cells split on unescaped pipes.
+    """
     rows = {}
     for line in section.splitlines():
         cells = [c.strip() for c in re.split(r'(?<!\\)\|', line.strip())[1:-1]]

@@ -1,4 +1,5 @@
-"""Smoke test of the benchmark scripts: every ``bench/*.py --quick`` runs into a tmp dir.
+"""
+Smoke test of the benchmark scripts: every ``bench/*.py --quick`` runs into a tmp dir.
 
 Checks exit status, that the script's section(s) of BENCHMARKS.md and its plots were written, and
 that the numbers are sane (finite NMSE, 0 negative-power points for the guaranteed modes). Speed
@@ -10,7 +11,6 @@ import re
 import subprocess
 import sys
 
-import pytest
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BENCH = os.path.join(REPO, 'bench')

@@ -6,7 +6,7 @@ import types
 import numpy as np
 import pytest
 
-from dgp_ros.messages import JointStateSample, joint_state_sample, stamp_seconds
+from dgp_ros.messages import joint_state_sample, JointStateSample, stamp_seconds
 
 STAMPS = [(0, 0), (1, 1), (100, 999_999_999), (1_700_000_000, 123_456_789), (2**31 - 1, 5)]
 

@@ -1,4 +1,5 @@
-"""dgp-replay: offline replay through the same OnlineEstimator as the node.
+"""
+dgp-replay: offline replay through the same OnlineEstimator as the node.
 
 - live run (publisher -> estimator node, recorded by the Recorder) == offline replay of the bag;
   bag played back (Player) into a fresh node == offline replay; to 1e-9, both storages;
@@ -20,12 +21,16 @@ JS = 'sensor_msgs/msg/JointState'
 
 # small, fast, but exercising refits: first fit at 10 samples, refit every 0.5 s of stamp time
 # (hyper-parameters optimized on the first fit only), projection for passivity
-PARAMS = dict(model='full', passivity='projected', buffer_size=40, min_samples=10,
-              refit_period_s=0.5, optimize_every_n_refits=0, selection='all')
+PARAMS = {'model': 'full', 'passivity': 'projected', 'buffer_size': 40, 'min_samples': 10,
+          'refit_period_s': 0.5, 'optimize_every_n_refits': 0, 'selection': 'all'}
 
 
 def write_js_bag(path, rows, storage='sqlite3', topic='/joint_states', extra_topics=()):
-    """JointState bag (rosbags only). rows: (t_s, names, velocity, effort)."""
+    """
+    Write a JointState bag (rosbags only).
+
+    rows: (t_s, names, velocity, effort).
+    """
     return write_joint_state_bag(path, [(t, n, np.zeros(len(n)), v, e) for t, n, v, e in rows],
                                  topic=[topic, *extra_topics], storage=storage)
 
@@ -199,8 +204,12 @@ def test_live_and_played_bag_equal_offline_replay(tmp_path, storage):
 
 # -------------------------------------------------------------------------- robot-like bags
 def test_robot_bag_extra_joints_other_order(tmp_path):
-    """/joint_states with extra joints, a varying order and a message missing a joint replays
-    exactly like a clean bag of the selected joints; the JointState topic is chosen by name."""
+    """
+    Check that a messy /joint_states replays like a clean bag.
+
+    /joint_states with extra joints, a varying order and a message missing a joint replays
+    exactly like a clean bag of the selected joints; the JointState topic is chosen by name.
+    """
     n = 40
     Q, T = passive_data(n, N=2, seed=3)
     clean, robot = [], []
@@ -278,7 +287,7 @@ def test_replay_cli_errors(tmp_path, capsys):
             # every message lacks joint zz: nothing to estimate -> exit 2 with the reason and
             # the bag's joints; the summary is still written
             assert rc == 2, err
-            assert '5 missing_joint' in err and "joints are a, b" in err, err
+            assert '5 missing_joint' in err and 'joints are a, b' in err, err
             s = json.loads((tmp_path / 'o' / 'summary.json').read_text())
             assert s['estimates'] == 0 and s['rejected']['missing_joint'] == 5
             continue

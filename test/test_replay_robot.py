@@ -1,5 +1,9 @@
-"""dgp-replay on robot bags: raw /joint_states of a simulated Panda (gravity and inertia in the
-effort), with and without inverse dynamics; --save-model; partial outputs on SIGINT."""
+"""
+dgp-replay on robot bags.
+
+Raw /joint_states of a simulated Panda (gravity and inertia in the effort), with and without
+inverse dynamics; --save-model; partial outputs on SIGINT.
+"""
 import json
 import os
 import signal

@@ -1,4 +1,5 @@
-"""``dgp-record`` and ``dgp-play``: rosbag2 record / play without the ``ros2`` CLI.
+"""
+``dgp-record`` and ``dgp-play``: rosbag2 record / play without the ``ros2`` CLI.
 
 ``dgp-record [TOPIC ...] [-t NAME[:TYPE] ...] -o BAG [-s sqlite3|mcap] [-d S] [-n N]``
     Records with :class:`dgp_ros.bags.ros.Recorder` until SIGINT/SIGTERM, ``--duration``
@@ -17,13 +18,13 @@ a refused message type (no traceback); 130 after a second SIGINT. ROS arguments 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 import signal
 import sys
 import threading
 import time
-from pathlib import Path
 
-from dgp_ros.bags.io import STORAGES, BagError, normalize_type, open_bag, playable_topics
+from dgp_ros.bags.io import BagError, normalize_type, open_bag, playable_topics, STORAGES
 
 EXIT_OK = 0
 EXIT_BAG_ERROR = 2
@@ -32,7 +33,8 @@ DRAIN_S = 1.0          # at most this long to take what has arrived when recordi
 
 
 def _split_ros_args(argv):
-    """Split ``argv`` into (args for ``rclpy.init``, args for argparse).
+    """
+    Split ``argv`` into (args for ``rclpy.init``, args for argparse).
 
     Only what sits between ``--ros-args`` and ``--`` (or the end) goes to rclpy, so that our own
     ``--remap FROM:=TO`` is not taken for a deprecated ROS remapping rule.
@@ -59,7 +61,8 @@ def _parse(ap: argparse.ArgumentParser, argv):
 
 
 class _Stop:
-    """SIGINT/SIGTERM -> an Event, so that the bag gets closed properly.
+    """
+    SIGINT/SIGTERM -> an Event, so that the bag gets closed properly.
 
     A second signal raises KeyboardInterrupt (the caller exits with 130).
     """
@@ -87,7 +90,8 @@ class _Stop:
 
 
 def _run_ros(prog: str, full_argv, node_name: str, body) -> int:
-    """Run ``body(ctx, node, stop_event)`` with a fresh rclpy context and node.
+    """
+    Run ``body(ctx, node, stop_event)`` with a fresh rclpy context and node.
 
     rclpy's own signal handlers are off (:class:`_Stop` turns SIGINT/SIGTERM into
     ``stop_event``). Returns the exit status: 0, 2 for a :class:`BagError` (one line on stderr),
@@ -125,8 +129,12 @@ def _logger(prog, quiet):
 
 
 def _drain(ex, rec, limit_s: float = DRAIN_S) -> None:
-    """Take the messages that have already arrived: spin until two short spins in a row bring
-    no message, or ``limit_s`` passed, or ``max_messages`` is reached."""
+    """
+    Take the messages that have already arrived.
+
+    Spin until two short spins in a row bring no message, or ``limit_s`` passed, or
+    ``max_messages`` is reached.
+    """
     t_end = time.monotonic() + limit_s
     idle = 0
     while idle < 2 and time.monotonic() < t_end and not rec.done:

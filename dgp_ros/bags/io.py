@@ -1,4 +1,5 @@
-"""rosbag2 reading and writing with the ``rosbags`` library only (no rclpy, no DDS).
+"""
+rosbag2 reading and writing with the ``rosbags`` library only (no rclpy, no DDS).
 
 Bags are standard rosbag2 (metadata version 9, storage ``sqlite3`` or ``mcap``), so a full
 ROS 2 Jazzy install (``ros2 bag info/play``) reads what is written here and the other way round.
@@ -17,11 +18,11 @@ pass, so a bag that names ``this/msg/Zen`` cannot make a tool import the module 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import queue
 import re
 import sys
 import threading
-from pathlib import Path
 from typing import Iterable, Iterator, Optional
 
 STORAGES = ('sqlite3', 'mcap')
@@ -52,7 +53,8 @@ def _one_line(exc: BaseException, limit: int = 200) -> str:
 
 # ------------------------------------------------------------------------------------ reading
 def open_bag(path):
-    """Open a rosbag2 bag for reading.
+    """
+    Open a rosbag2 bag for reading.
 
     Parameters
     ----------
@@ -70,6 +72,7 @@ def open_bag(path):
     ------
     BagError
         With a one-line reason, for anything that is not a readable bag.
+
     """
     from rosbags.rosbag2 import Reader
 
@@ -93,7 +96,8 @@ def open_bag(path):
 
 
 def iter_bag(path, topics: Optional[Iterable[str]] = None, reader=None) -> Iterator[tuple]:
-    """Yield ``(connection, timestamp_ns, rawdata)`` in timestamp order.
+    """
+    Yield ``(connection, timestamp_ns, rawdata)`` in timestamp order.
 
     Parameters
     ----------
@@ -108,6 +112,7 @@ def iter_bag(path, topics: Optional[Iterable[str]] = None, reader=None) -> Itera
     ------
     BagError
         A storage error while reading (truncated or corrupt file), naming how far it got.
+
     """
     own = reader is None
     if own:
@@ -136,13 +141,15 @@ def iter_bag(path, topics: Optional[Iterable[str]] = None, reader=None) -> Itera
 
 
 def bag_summary(path) -> dict:
-    """Topics, types, counts and time span of a bag.
+    """
+    Topics, types, counts and time span of a bag.
 
     Returns
     -------
     dict
         ``topics`` ({topic: {'type', 'count'}}), ``message_count``, ``start_ns``, ``end_ns``
         (bag receive times, ns).
+
     """
     reader = open_bag(path)
     try:
@@ -159,13 +166,15 @@ def bag_summary(path) -> dict:
 
 # ------------------------------------------------------------------- types and definitions
 def normalize_type(msgtype: str) -> str:
-    """``pkg/Name`` or ``pkg/msg/Name`` -> ``pkg/msg/Name``.
+    """
+    ``pkg/Name`` or ``pkg/msg/Name`` -> ``pkg/msg/Name``.
 
     Raises
     ------
     ValueError
         Not of that form, or a part is not a ROS name (letters, digits, ``_``; a letter
         first), which also keeps ``..`` out of the file paths built from a type.
+
     """
     parts = [x for x in str(msgtype).strip().split('/') if x]
     if len(parts) == 2:
@@ -181,7 +190,8 @@ _TS_LOCK = threading.Lock()
 
 
 def typestore():
-    """The rosbags typestore for ROS 2 Jazzy (one per process, shared).
+    """
+    Return the rosbags typestore for ROS 2 Jazzy (one per process, shared).
 
     :func:`message_definition` extends it with types registered from installed ``.msg``
     files; :func:`check_message_type` only trusts the types it had before that.
@@ -210,7 +220,8 @@ def _share_dirs() -> list:
 
 
 def installed_definition(msgtype: str) -> Optional[Path]:
-    """The installed ``share/<pkg>/msg/<Name>.msg`` file of a type, or None.
+    """
+    Return the installed ``share/<pkg>/msg/<Name>.msg`` file of a type, or None.
 
     Its presence marks ``<pkg>`` as an installed ROS interface package (found through
     ``AMENT_PREFIX_PATH`` or this environment's ``share`` folder).
@@ -224,7 +235,8 @@ def installed_definition(msgtype: str) -> Optional[Path]:
 
 
 def check_message_type(msgtype: str, allow_installed: bool = False) -> str:
-    """Decide, without importing anything, whether a type may be resolved to a Python class.
+    """
+    Decide, without importing anything, whether a type may be resolved to a Python class.
 
     Parameters
     ----------
@@ -245,6 +257,7 @@ def check_message_type(msgtype: str, allow_installed: bool = False) -> str:
     ------
     BagError
         One line naming the type and the reason.
+
     """
     try:
         t = normalize_type(msgtype)
@@ -297,7 +310,8 @@ def _register_from_share(ts, msgtype: str, seen=None) -> bool:
 
 
 def message_definition(msgtype: str, graph_hash: str = '') -> tuple:
-    """``(msgdef, rihs01)`` of a message type, for rosbag2 metadata.
+    """
+    ``(msgdef, rihs01)`` of a message type, for rosbag2 metadata.
 
     From the Jazzy typestore; a type it lacks is registered from the installed ``.msg`` files.
     If neither knows the type, the definition is empty (what ``ros2 bag`` writes for an unknown
@@ -318,7 +332,8 @@ def message_definition(msgtype: str, graph_hash: str = '') -> tuple:
 
 
 def playable_topics(reader, topics: Optional[Iterable[str]] = None, name=None) -> dict:
-    """The topics of an open bag to publish, each with its checked type and connections.
+    """
+    Return the topics of an open bag to publish, each with its checked type and connections.
 
     Parameters
     ----------
@@ -339,6 +354,7 @@ def playable_topics(reader, topics: Optional[Iterable[str]] = None, name=None) -
     ------
     BagError
         A wanted topic is missing, a topic has several types, or a type is refused.
+
     """
     name = name if name is not None else getattr(reader, 'path', 'bag')
     keep = None if topics is None else set(topics)
@@ -372,7 +388,8 @@ def storage_plugin(storage: str):
 
 
 class BagWriter:
-    """A rosbags ``Writer`` owned by one thread of its own, fed through a queue.
+    """
+    A rosbags ``Writer`` owned by one thread of its own, fed through a queue.
 
     sqlite3 objects are bound to the thread that created them, while a recorder's callbacks
     may run on any executor thread; the queue also keeps disk I/O out of those callbacks.
@@ -391,6 +408,7 @@ class BagWriter:
     ------
     BagError
         The bag cannot be created.
+
     """
 
     def __init__(self, path, storage: str = 'sqlite3', custom: Optional[dict] = None):

@@ -1,4 +1,5 @@
-"""``sensor_msgs/JointState`` streams in bags, with rosbags only (no rclpy, no DDS).
+"""
+``sensor_msgs/JointState`` streams in bags, with rosbags only (no rclpy, no DDS).
 
 :func:`iter_joint_states` is how ``dgp-replay`` reads a bag: every message of one JointState
 topic, deserialized with the Jazzy typestore and converted by
@@ -15,15 +16,15 @@ from typing import Iterable, Iterator, Optional, Sequence, Union
 
 import numpy as np
 
-from dgp_ros.bags.io import (BagError, _one_line, iter_bag, open_bag, storage_plugin,
-                             typestore)
-from dgp_ros.messages import JointStateSample, joint_state_sample
+from dgp_ros.bags.io import (_one_line, BagError, iter_bag, open_bag, storage_plugin, typestore)
+from dgp_ros.messages import joint_state_sample, JointStateSample
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 
 
 def joint_state_topic(reader, topic: Optional[str] = None) -> str:
-    """The JointState topic of an open bag to read.
+    """
+    Return the JointState topic of an open bag to read.
 
     Parameters
     ----------
@@ -38,6 +39,7 @@ def joint_state_topic(reader, topic: Optional[str] = None) -> str:
     ------
     BagError
         The topic is missing or not a JointState, or the automatic choice is ambiguous.
+
     """
     topics = reader.topics
     js = sorted(t for t, info in topics.items() if info.msgtype == JOINT_STATE)
@@ -63,7 +65,8 @@ def joint_state_topic(reader, topic: Optional[str] = None) -> str:
 
 def iter_joint_states(bag, topic: Optional[str] = None, stamp: str = 'header',
                       reader=None) -> Iterator[Optional[JointStateSample]]:
-    """Yield every JointState of one topic of a bag, in bag order, as samples.
+    """
+    Yield every JointState of one topic of a bag, in bag order, as samples.
 
     Parameters
     ----------
@@ -81,6 +84,7 @@ def iter_joint_states(bag, topic: Optional[str] = None, stamp: str = 'header',
     ------
     JointStateSample or None
         ``None`` for a message that does not deserialize (the caller counts it).
+
     """
     if stamp not in ('header', 'bag'):
         raise ValueError(f"stamp must be 'header' or 'bag', not {stamp!r}")
@@ -104,7 +108,8 @@ def iter_joint_states(bag, topic: Optional[str] = None, stamp: str = 'header',
 
 def write_joint_state_bag(path, samples: Iterable, topic: Union[str, Sequence[str]] =
                           '/joint_states', storage: str = 'sqlite3') -> Path:
-    """Write ``sensor_msgs/JointState`` messages to a new bag (rosbags CDR, Jazzy typestore).
+    """
+    Write ``sensor_msgs/JointState`` messages to a new bag (rosbags CDR, Jazzy typestore).
 
     For tests and simulated data; no ROS needed.
 
@@ -126,6 +131,7 @@ def write_joint_state_bag(path, samples: Iterable, topic: Union[str, Sequence[st
     Path
         ``path``. Header stamps are ``stamp_s`` rounded to whole nanoseconds, and the bag
         (receive) timestamp of each message equals its header stamp.
+
     """
     from rosbags.rosbag2 import Writer
     ts = typestore()

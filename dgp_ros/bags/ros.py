@@ -1,4 +1,5 @@
-"""Record topics to a bag and publish a bag's messages, from inside an rclpy node.
+"""
+Record topics to a bag and publish a bag's messages, from inside an rclpy node.
 
 :class:`Recorder` subscribes with ``raw=True`` and writes the received CDR bytes unchanged: the
 bag holds exactly what travelled. A topic given by name only is subscribed once a publisher for
@@ -21,9 +22,9 @@ the graph (for the recorder) never makes this process import a module it names.
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 import threading
 import time
-from pathlib import Path
 from typing import Callable, Optional
 
 from rclpy.duration import Duration
@@ -36,7 +37,8 @@ __all__ = ['Player', 'Recorder', 'adapted_qos', 'message_class', 'qos_to_rosbags
 
 
 def message_class(msgtype: str, allow_installed: bool = False):
-    """The Python class of a message type, imported only once the type is accepted.
+    """
+    Return the Python class of a message type, imported only once the type is accepted.
 
     Parameters
     ----------
@@ -49,6 +51,7 @@ def message_class(msgtype: str, allow_installed: bool = False):
     ------
     BagError
         The type is refused (nothing was imported), or its package is not installed.
+
     """
     pkg, sub, name = check_message_type(msgtype, allow_installed).split('/')
     try:
@@ -65,7 +68,7 @@ def _duration_to_qostime(d):
 
 
 def qos_to_rosbags(profile):
-    """rclpy ``QoSProfile`` -> rosbags ``Qos`` (for a bag's ``offered_qos_profiles``)."""
+    """Convert rclpy ``QoSProfile`` to rosbags ``Qos`` (for a bag's ``offered_qos_profiles``)."""
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability)
 
@@ -87,7 +90,8 @@ def qos_to_rosbags(profile):
 
 
 def adapted_qos(offered, depth: int = 1000, reliability: str = 'auto') -> QoSProfile:
-    """A QoS compatible with all ``offered`` profiles (rclpy ``QoSProfile`` or rosbags ``Qos``).
+    """
+    Make a QoS compatible with all ``offered`` profiles (rclpy ``QoSProfile`` or rosbags ``Qos``).
 
     Reliable only if every offered profile is reliable, transient-local only if every one is
     (the rule ``ros2 bag`` uses); KEEP_LAST with ``depth``. ``reliability`` may force
@@ -111,7 +115,8 @@ def adapted_qos(offered, depth: int = 1000, reliability: str = 'auto') -> QoSPro
 
 
 class Recorder:
-    """Record topics to a new rosbag2 bag from inside an rclpy node.
+    """
+    Record topics to a new rosbag2 bag from inside an rclpy node.
 
     Callbacks may run on any executor thread; the bag is written by one :class:`BagWriter`
     thread. Call :meth:`close` (always) to write the metadata.
@@ -144,6 +149,7 @@ class Recorder:
     ------
     BagError
         The bag cannot be created, or an explicitly given type is refused or not installed.
+
     """
 
     def __init__(self, node, path, topics, storage: str = 'sqlite3', max_messages: int = 0,
@@ -237,7 +243,8 @@ class Recorder:
                 self.done = True
 
     def close(self):
-        """Destroy the subscriptions and close the bag (writes metadata.yaml); idempotent.
+        """
+        Destroy the subscriptions and close the bag (writes metadata.yaml); idempotent.
 
         Call it while no other thread spins the node: rclpy cannot destroy a subscription an
         executor is waiting on (that executor's thread fails with ``InvalidHandle``).
@@ -263,7 +270,8 @@ def _same_type(graph_type: str, typ: str) -> bool:
 
 
 class Player:
-    """Publish a bag's messages from an rclpy node with their original timing.
+    """
+    Publish a bag's messages from an rclpy node with their original timing.
 
     Publishing needs no executor: :meth:`run` blocks the calling thread until the bag is
     played (or :attr:`stop` is set).
@@ -304,6 +312,7 @@ class Player:
     BagError
         Unreadable bag, a missing topic, a topic with several types, or a message type that is
         refused or not installed (checked for every played topic before anything is imported).
+
     """
 
     def __init__(self, node, path, rate: float = 1.0, clock_hz: float = 0.0, loop: bool = False,
@@ -386,7 +395,8 @@ class Player:
             self.log(f'no subscriber yet on {", ".join(lonely)}; playing anyway')
 
     def run(self) -> int:
-        """Play (blocking); returns the number of messages published.
+        """
+        Play (blocking); returns the number of messages published.
 
         :attr:`published` counts the messages and :attr:`loops` the passes started.
         """

@@ -1,6 +1,8 @@
-"""Robot front end (DESIGN "Robot front end (real arms)"): from raw ``/joint_states`` to the
-friction residual the estimator learns. Pure numpy; no ROS import anywhere in this package, and
-pinocchio only when a URDF model is built.
+"""
+Robot front end (DESIGN "Robot front end (real arms)").
+
+From raw ``/joint_states`` to the friction residual the estimator learns. Pure numpy; no ROS import
+anywhere in this package, and pinocchio only when a URDF model is built.
 
 - ``inverse``: rigid-body inverse dynamics ``tau_rb(q, qd, qdd)`` from a URDF (pinocchio) or a
   user plugin, chosen by the ``inverse_dynamics`` parameter (:func:`make_inverse_dynamics`);
@@ -9,11 +11,11 @@ pinocchio only when a URDF model is built.
 - ``residual``: :class:`FrictionResidual`, ``effort - tau_rb`` per wanted sample;
 - ``arm_sim``: simulated Panda / UR5 data with known friction and bias (tests, demo).
 """
-from .arm_sim import (ARM_JOINTS, FRICTION_TABLES, example_robot_urdf, friction_truth,
+from .arm_sim import (ARM_JOINTS, example_robot_urdf, FRICTION_TABLES, friction_truth,
                       negative_power_fraction, simulate_arm)
-from .filter import DEFAULT_HALF_WINDOW_S, AccelFilter, AccelSample
-from .inverse import (INVERSE_DYNAMICS_CHOICES, PINOCCHIO_HINT, PluginInverseDynamics,
-                      UrdfInverseDynamics, make_inverse_dynamics)
+from .filter import AccelFilter, AccelSample, DEFAULT_HALF_WINDOW_S
+from .inverse import (INVERSE_DYNAMICS_CHOICES, make_inverse_dynamics, PINOCCHIO_HINT,
+                      PluginInverseDynamics, UrdfInverseDynamics)
 from .residual import FrictionResidual, ResidualSample
 
 __all__ = ['UrdfInverseDynamics', 'PluginInverseDynamics', 'make_inverse_dynamics',

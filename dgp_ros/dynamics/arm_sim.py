@@ -1,4 +1,5 @@
-"""Simulated joint states of a real arm (Panda, UR5) with known friction: test data and demo.
+"""
+Simulated joint states of a real arm (Panda, UR5) with known friction: test data and demo.
 
 What a user's ``/joint_states`` looks like: the effort is the measured joint torque
 
@@ -22,8 +23,8 @@ coefficients (by seed), scaled so that the position stays inside the URDF limits
 margin (and within +-2.5 rad of the centre) and the velocity peaks at
 min(2, 0.7 x the URDF velocity limit) rad/s unless the position bound is reached first;
 q, qd, qdd are analytic. With ``pause_hz > 0`` the path is followed in warped time
-``s(t) = t - sin(2 pi f t) / (2 pi f)`` (``ds/dt = 1 - cos(2 pi f t)``): every ``1 / f`` seconds all
-joints slow down to a standstill together and speed up again, as in pick-and-place cycles. Near
+``s(t) = t - sin(2 pi f t) / (2 pi f)`` (``ds/dt = 1 - cos(2 pi f t)``): every ``1 / f`` seconds
+all joints slow down to a standstill together and speed up again, as in pick-and-place cycles. Near
 those stops the torque noise outweighs the friction power, which gives the few percent of
 non-passive samples a real friction log has.
 """
@@ -85,7 +86,8 @@ def _robot(robot: str) -> str:
 
 
 def example_robot_urdf(robot: str = 'panda') -> str:
-    """Path of the example-robot-data URDF of ``robot`` (``'panda'`` or ``'ur5'``).
+    """
+    Path of the example-robot-data URDF of ``robot`` (``'panda'`` or ``'ur5'``).
 
     Searched in ``<site-packages>/cmeel.prefix/share/example-robot-data/robots`` (the pip wheel)
     of ``sys.prefix`` and the site directories, then ``<prefix>/share/example-robot-data/robots``
@@ -95,6 +97,7 @@ def example_robot_urdf(robot: str = 'panda') -> str:
     ------
     FileNotFoundError
         The package is not installed (the message says how to install it).
+
     """
     rel = _URDF[_robot(robot)]
     sub = os.path.join('share', 'example-robot-data', 'robots')
@@ -112,7 +115,8 @@ def example_robot_urdf(robot: str = 'panda') -> str:
 
 
 def friction_truth(robot: str, qd) -> np.ndarray:
-    """The simulated (passive) friction torque at velocities ``qd``, without the bias.
+    """
+    Return the simulated (passive) friction torque at velocities ``qd``, without the bias.
 
     Parameters
     ----------
@@ -125,6 +129,7 @@ def friction_truth(robot: str, qd) -> np.ndarray:
     -------
     numpy.ndarray, shape of ``qd``
         Friction torque [N m]; ``qd * f >= 0`` element-wise.
+
     """
     table = FRICTION_TABLES[_robot(robot)]
     v = np.asarray(qd, dtype=float)
@@ -141,7 +146,8 @@ def negative_power_fraction(qd, force) -> float:
 
 
 def fourier_trajectory(t, coef: np.ndarray, q0: np.ndarray, base_hz: float):
-    """Positions, velocities, accelerations of a Fourier-series trajectory.
+    """
+    Positions, velocities, accelerations of a Fourier-series trajectory.
 
     ``qd_j(t) = sum_l a_jl cos(l w t) + b_jl sin(l w t)``, ``w = 2 pi base_hz``, ``q`` its integral
     plus ``q0`` and ``qdd`` its derivative.
@@ -161,6 +167,7 @@ def fourier_trajectory(t, coef: np.ndarray, q0: np.ndarray, base_hz: float):
     -------
     q, qd, qdd : numpy.ndarray, (k, N) each
         [rad], [rad/s], [rad/s^2].
+
     """
     a, b = coef
     w = 2.0 * np.pi * base_hz * np.arange(1, a.shape[1] + 1)       # (L,) [rad/s]
@@ -199,7 +206,8 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
                  velocity_noise_sd: float = 0.003, jitter_sd_s: float = 50e-6,
                  friction: bool = True, t0_s: float = 0.0, base_hz: float = 0.1,
                  harmonics: int = 5, pause_hz: float = 0.2) -> dict:
-    """Joint states of an arm following an exciting trajectory, with ground truth.
+    """
+    Joint states of an arm following an exciting trajectory, with ground truth.
 
     Parameters
     ----------
@@ -243,6 +251,7 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
         ``nonpassive_fraction_per_joint`` (N,) (samples with ``qd_j (effort_j - tau_rb_j) < 0``:
         with several joints moving at once the sum rarely goes negative, a single joint does near
         its velocity reversals).
+
     """
     names = ARM_JOINTS[_robot(robot)]
     dyn = UrdfInverseDynamics(urdf_file=example_robot_urdf(robot), joints=names)

@@ -1,4 +1,5 @@
-"""Joint acceleration from the measured velocity, centred on the sample it is paired with.
+"""
+Joint acceleration from the measured velocity, centred on the sample it is paired with.
 
 The friction residual ``effort - tau_rb(q, qd, qdd)`` needs ``qdd`` at the *same* instant as the
 effort and velocity of the sample. A causal differentiator (finite difference plus low-pass) is
@@ -33,8 +34,8 @@ better with noisier velocities, at twice the delay and fit cost.
 """
 from __future__ import annotations
 
-import math
 from collections import deque
+import math
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -68,7 +69,8 @@ class AccelSample(NamedTuple):
 
 
 class AccelFilter:
-    """Streaming centred local-polynomial differentiator of joint velocities.
+    """
+    Streaming centred local-polynomial differentiator of joint velocities.
 
     Parameters
     ----------
@@ -91,6 +93,7 @@ class AccelFilter:
     and gaps), ``rejected`` (non-finite or repeated stamps, ignored), ``dropped`` (wanted samples
     that got no estimate: within ``h`` of a (re)start, pending at a restart, a window with a side
     empty or fewer than ``order + 2`` samples, or a non-finite result).
+
     """
 
     def __init__(self, half_window_s: float = DEFAULT_HALF_WINDOW_S, order: int = 2,
@@ -154,7 +157,8 @@ class AccelFilter:
         self._n = n + 1
 
     def push(self, t: float, qd, want: bool = True, payload: Any = None) -> list[AccelSample]:
-        """Add one velocity sample; return the wanted samples whose window is now complete.
+        """
+        Add one velocity sample; return the wanted samples whose window is now complete.
 
         Parameters
         ----------
@@ -177,6 +181,7 @@ class AccelFilter:
         ------
         ValueError
             ``qd`` not of shape (N,).
+
         """
         self.samples_in += 1
         qd = np.asarray(qd, dtype=float)

@@ -1,4 +1,5 @@
-"""Rigid-body inverse dynamics ``tau_rb(q, qd, qdd)`` of an arm, in the estimator's joint order.
+"""
+Rigid-body inverse dynamics ``tau_rb(q, qd, qdd)`` of an arm, in the estimator's joint order.
 
 The measured joint torque of a real arm is ``M(q) qdd + C(q, qd) qd + g(q)`` plus friction, sensor
 bias and noise; the estimator learns what is left after subtracting the first part (DESIGN "Robot
@@ -41,10 +42,12 @@ def _import_pinocchio():
 
 
 def _urdf_reason(text: str) -> str:
-    """One-line reason why ``text`` is not a URDF robot, or '' if the XML looks like one.
+    """
+    One-line reason why ``text`` is not a URDF robot, or '' if the XML looks like one.
 
-    pinocchio only says "does not contain a valid URDF model" (urdfdom prints the detail on stderr),
-    so the XML is checked here first to name the line and column."""
+    pinocchio only says "does not contain a valid URDF model" (urdfdom prints the detail on
+    stderr), so the XML is checked here first to name the line and column.
+    """
     try:
         root = ElementTree.fromstring(text)
     except ElementTree.ParseError as exc:
@@ -67,7 +70,8 @@ def _check_shapes(q, qd, qdd, n: int | None) -> tuple[np.ndarray, np.ndarray, np
 
 
 class UrdfInverseDynamics:
-    """pinocchio RNEA of a URDF arm, reduced to the selected joints.
+    """
+    pinocchio RNEA of a URDF arm, reduced to the selected joints.
 
     Parameters
     ----------
@@ -94,12 +98,14 @@ class UrdfInverseDynamics:
     joints, stored by pinocchio as (cos, sin), take the angle in rad and map it. Gravity is
     pinocchio's default, -9.81 m/s^2 along the base z axis. The joint ``damping``/``friction``
     attributes of the URDF are not part of the RNEA (that is what the estimator learns).
+
     """
 
     def __init__(self, urdf: str | None = None, urdf_file: str | None = None,
                  joints: Sequence[str] = ()):
         if isinstance(joints, str):
-            raise ValueError(f'joints must be a sequence of joint names, got the string {joints!r}')
+            raise ValueError(f'joints must be a sequence of joint names, got the string '
+                             f'{joints!r}')
         pin = _import_pinocchio()
         self._pin = pin
         full = self._build(pin, urdf, urdf_file)
@@ -136,10 +142,12 @@ class UrdfInverseDynamics:
 
     @staticmethod
     def _slots(model, joints: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per selected joint: first q index, v index, and whether it is continuous (nq = 2).
+        """
+        Per selected joint: first q index, v index, and whether it is continuous (nq = 2).
 
         In the reduced model every velocity belongs to a selected joint, so the v indices are a
-        permutation of 0..N-1."""
+        permutation of 0..N-1.
+        """
         slots = []
         for name in joints:
             jm = model.joints[model.getJointId(name)]
@@ -152,7 +160,7 @@ class UrdfInverseDynamics:
 
     @staticmethod
     def _build(pin, urdf: str | None, urdf_file: str | None):
-        """The full pinocchio model (no root joint: the base is fixed) or ValueError."""
+        """Build the full pinocchio model (no root joint: the base is fixed) or ValueError."""
         if urdf:
             text, what = urdf, 'robot_description'
         elif urdf_file:
@@ -174,11 +182,11 @@ class UrdfInverseDynamics:
 
     @property
     def nv(self) -> int:
-        """Number of selected joints N."""
+        """Get the number of selected joints N."""
         return self._n
 
     def _config(self, q: np.ndarray) -> np.ndarray:
-        """pinocchio configuration vector (nq,) from the selected coordinates (N,)."""
+        """Return the pinocchio configuration vector (nq,) from the selected coordinates (N,)."""
         qp = self._q0.copy()
         qp[self._lin_q] = q[self._lin_sel]
         if self._cos_q.size:
@@ -188,7 +196,8 @@ class UrdfInverseDynamics:
         return qp
 
     def __call__(self, q, qd, qdd) -> np.ndarray:
-        """Rigid-body joint torque ``M(q) qdd + C(q, qd) qd + g(q)``.
+        """
+        Rigid-body joint torque ``M(q) qdd + C(q, qd) qd + g(q)``.
 
         Parameters
         ----------
@@ -205,6 +214,7 @@ class UrdfInverseDynamics:
         -----
         One RNEA per sample in a Python loop. Measured for the 7-DOF Panda: 6.5 to 9 us for a
         call with one sample (mostly the argument checks), 2.4 us per sample in a batch.
+
         """
         q, qd, qdd = _check_shapes(q, qd, qdd, self._n)
         single = q.ndim == 1
@@ -221,13 +231,15 @@ class UrdfInverseDynamics:
 
 
 class PluginInverseDynamics:
-    """A user's inverse dynamics ``f(q, qd, qdd) -> tau_rb``, named "python:<module>:<function>".
+    """
+    A user's inverse dynamics ``f(q, qd, qdd) -> tau_rb``, named "python:<module>:<function>".
 
     Parameters
     ----------
     spec : str
-        ``"python:<module>:<function>"``; ``<module>`` is imported (dotted names allowed, it must be
-        on ``sys.path``) and ``<function>`` is an attribute of it (dotted for a nested attribute).
+        ``"python:<module>:<function>"``; ``<module>`` is imported (dotted names allowed, it must
+        be on ``sys.path``) and ``<function>`` is an attribute of it (dotted for a nested
+        attribute).
 
     Raises
     ------
@@ -239,6 +251,7 @@ class PluginInverseDynamics:
     -----
     The function gets float arrays (N,) or (k, N) in the selected joint order and must return the
     same shape (N m). The shape is checked on every call (a tuple comparison).
+
     """
 
     def __init__(self, spec: str):
@@ -276,7 +289,8 @@ class PluginInverseDynamics:
 
 def make_inverse_dynamics(spec: str, *, robot_description: str = '', urdf_file: str = '',
                           joints: Sequence[str] = ()) -> Callable | None:
-    """The inverse dynamics named by the estimator parameter ``inverse_dynamics``.
+    """
+    Make the inverse dynamics named by the estimator parameter ``inverse_dynamics``.
 
     Parameters
     ----------
@@ -300,6 +314,7 @@ def make_inverse_dynamics(spec: str, *, robot_description: str = '', urdf_file: 
     ValueError
         Unknown spec (the message lists :data:`INVERSE_DYNAMICS_CHOICES`), ``"urdf"`` without a
         URDF (the message names both parameters), or the constructors' errors.
+
     """
     spec = (spec or '').strip()
     if not spec:

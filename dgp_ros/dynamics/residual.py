@@ -1,4 +1,5 @@
-"""The friction residual ``effort - tau_rb(q, qd, qdd_hat)`` of a joint-state stream.
+"""
+The friction residual ``effort - tau_rb(q, qd, qdd_hat)`` of a joint-state stream.
 
 This is what the estimator learns on a real arm (DESIGN "Robot front end"): the measured joint
 torque minus the rigid-body torque, i.e. friction plus sensor bias plus noise. ``qdd_hat`` comes
@@ -37,7 +38,8 @@ class ResidualSample(NamedTuple):
 
 
 class FrictionResidual:
-    """Streaming friction residual of ``(stamp, q, qd, effort)`` samples.
+    """
+    Streaming friction residual of ``(stamp, q, qd, effort)`` samples.
 
     Parameters
     ----------
@@ -54,6 +56,7 @@ class FrictionResidual:
     ``qd . residual < 0``: friction is passive, so more than a few percent of these means a wrong
     model, a torque bias or a sign convention problem), and from the filter ``restarts`` and
     ``dropped``.
+
     """
 
     def __init__(self, inverse_dynamics: Callable | None = None,
@@ -70,7 +73,7 @@ class FrictionResidual:
 
     @property
     def restarts(self) -> int:
-        """Filter restarts (backwards stamps and gaps)."""
+        """Filter restarts: backwards stamps and gaps."""
         return 0 if self.filter is None else self.filter.restarts
 
     @property
@@ -84,7 +87,8 @@ class FrictionResidual:
         return self.negative_power / self.samples_out if self.samples_out else 0.0
 
     def push(self, stamp_s: float, q, qd, effort, want: bool = True) -> list[ResidualSample]:
-        """Add one joint-state sample; return the residual samples that are complete.
+        """
+        Add one joint-state sample; return the residual samples that are complete.
 
         Parameters
         ----------
@@ -101,6 +105,7 @@ class FrictionResidual:
         list of ResidualSample
             Zero or more samples, stamps increasing, each ``delay_s`` (or a little more) old;
             without inverse dynamics this sample itself if wanted.
+
         """
         self.samples_in += 1
         if not want:   # only feeds the filter's windows (which checks qd)
@@ -126,8 +131,11 @@ class FrictionResidual:
         return out
 
     def _residuals(self, acc: list) -> list[ResidualSample]:
-        """Residual samples of the filter outputs ``acc`` (payload = (q, effort)); one batched
-        inverse-dynamics call."""
+        """
+        Residual samples of the filter outputs ``acc`` (payload = (q, effort)).
+
+        One batched inverse-dynamics call.
+        """
         if not acc:
             return []
         Q = np.array([a.payload[0] for a in acc])

@@ -1,4 +1,5 @@
-"""Dissipative Gaussian Processes in pure numpy/scipy (no ROS import anywhere in this package).
+"""
+Dissipative Gaussian Processes in pure numpy/scipy (no ROS import anywhere in this package).
 
 Estimators (scikit-learn shape): ``FullDGP``, ``DiagDGP``, ``ArdGP`` with fit / predict /
 damping_matrix / certificate / recertify / update / save / load.
@@ -9,10 +10,10 @@ registry of passivity modes and their policies; ``certified`` and ``verify`` for
 proof), ``persistence`` (model files), ``models`` (the estimators).
 """
 from .kernels import KINDS, se_ard, se_bound
-from .means import PRIORS, prior_mean_diag
+from .means import prior_mean_diag, PRIORS
 from .models import ArdGP, DiagDGP, FullDGP, make_model, model_class
-from .passivity import (PASSIVITY_MODES, POLICIES, Certificate, copositivity_margin, modes_for,
-                        passive_tolerance, policy_class, project_passive)
+from .passivity import (Certificate, copositivity_margin, modes_for, passive_tolerance,
+                        PASSIVITY_MODES, POLICIES, policy_class, project_passive)
 from .persistence import FORMAT_VERSION, load_model
 
 __all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class', 'load_model',

@@ -1,18 +1,20 @@
-"""Cholesky factor of a sliding-window kernel matrix, updated in place: O(n^2) per sample.
+"""
+Cholesky factor of a sliding-window kernel matrix, updated in place: O(n^2) per sample.
 
 ``WindowCholesky`` holds the lower factor ``L`` of ``K`` (n x n) in a preallocated column-major
 buffer (leading dimension = ``capacity``); the active block starts at row ``r0``, column 0.
 LAPACK reads it in place through the leading dimension, so
 
 * appending a sample writes one new row (one triangular solve, no copy of the factor);
-* dropping the oldest sample is a rank-one update ``L' L'^T = L22 L22^T + x x^T`` (``x = L[1:, 0]``)
-  done as the LQ factorization of the lower-Hessenberg ``N = L[1:, :] = [x | L22]`` by adjacent
-  plane rotations. All rotations follow in O(n) from ``p = L22^-1 x`` (one triangular solve):
-  with ``t_k = 1 + p_0^2 + ... + p_k^2``, rotation ``k`` (columns ``k, k+1`` of ``N``) has
-  ``c_k = (-1)^k p_k / sqrt(t_k)``, ``s_k = sqrt(t_(k-1) / t_k)`` (Gill, Golub, Murray, Saunders
-  1974). They are applied by LAPACK ``dlasr`` (a compiled loop over a whole sequence of rotations,
-  no Python per column) in panels of ``_PANEL`` columns, each to the rows at or below the panel.
-  ``[L' 0] = N Q``: the new factor is ``N``'s first n-1 columns, i.e. the block moves down one row;
+* dropping the oldest sample is a rank-one update ``L' L'^T = L22 L22^T + x x^T``
+  (``x = L[1:, 0]``) done as the LQ factorization of the lower-Hessenberg
+  ``N = L[1:, :] = [x | L22]`` by adjacent plane rotations. All rotations follow in O(n) from
+  ``p = L22^-1 x`` (one triangular solve): with ``t_k = 1 + p_0^2 + ... + p_k^2``, rotation ``k``
+  (columns ``k, k+1`` of ``N``) has ``c_k = (-1)^k p_k / sqrt(t_k)``, ``s_k = sqrt(t_(k-1) / t_k)``
+  (Gill, Golub, Murray, Saunders 1974). They are applied by LAPACK ``dlasr`` (a compiled loop over
+  a whole sequence of rotations, no Python per column) in panels of ``_PANEL`` columns, each to the
+  rows at or below the panel. ``[L' 0] = N Q``: the new factor is ``N``'s first n-1 columns, i.e.
+  the block moves down one row;
 * the block is moved back to row 0 once every ``capacity - n`` drops (amortized O(n)).
 
 If ``p`` is not finite (a singular factor), or scipy's Cython LAPACK is not reachable, the drop
@@ -30,7 +32,8 @@ output): ``z`` rides as one extra row under ``N`` through the same rotations, so
 
 Pure numpy/scipy: ``dlasr`` and ``dpotrf`` are taken from scipy's public Cython LAPACK
 (``scipy.linalg.cython_lapack``) through ctypes, because scipy's f2py wrappers of them take no
-leading dimension (they would copy the block). Used by ``models._BaseGP`` (one instance per output).
+leading dimension (they would copy the block). Used by ``models._BaseGP`` (one instance per
+output).
 """
 from __future__ import annotations
 
@@ -39,9 +42,9 @@ import math
 from typing import Optional
 
 import numpy as np
-import scipy.linalg.cython_lapack as _cython_lapack
 from scipy.linalg import LinAlgError
 from scipy.linalg.blas import drot
+import scipy.linalg.cython_lapack as _cython_lapack
 from scipy.linalg.lapack import dpotrf, dtrtrs
 
 __all__ = ['WindowCholesky', 'cholesky_in_place']
@@ -70,10 +73,14 @@ _VP = ctypes.c_void_p
 
 
 def cholesky_in_place(A: np.ndarray, n: Optional[int] = None) -> int:
-    """Lower Cholesky factor of the top-left ``n x n`` block of the F-ordered 2-D array ``A``
+    """
+    Factor the top-left block of ``A`` in place (lower Cholesky).
+
+    Lower Cholesky factor of the top-left ``n x n`` block of the F-ordered 2-D array ``A``
     (LAPACK ``dpotrf``, leading dimension ``A.shape[0]``), written over its lower triangle; the
     strict upper triangle is left as it was. No copy. Returns LAPACK's ``info`` (0: success,
-    ``k > 0``: the leading minor of order k is not positive definite)."""
+    ``k > 0``: the leading minor of order k is not positive definite).
+    """
     if A.dtype != np.float64 or A.ndim != 2 or not A.flags.f_contiguous:
         raise ValueError('A must be an F-ordered 2-D float64 array')
     n = A.shape[1] if n is None else int(n)
@@ -93,7 +100,8 @@ def cholesky_in_place(A: np.ndarray, n: Optional[int] = None) -> int:
 
 
 class WindowCholesky:
-    """Lower Cholesky factor with in-place append and drop-oldest.
+    """
+    Lower Cholesky factor with in-place append and drop-oldest.
 
     Parameters
     ----------
@@ -108,6 +116,7 @@ class WindowCholesky:
         update), or None for unbounded growth. Sizes the buffer: ``limit + slack`` rows when
         given (slack = max(8, limit // 8) drops between two moves of the block), else grown by
         1.5x.
+
     """
 
     def __init__(self, L: np.ndarray, r: np.ndarray, limit: Optional[int] = None,
@@ -125,10 +134,14 @@ class WindowCholesky:
 
     @classmethod
     def workspace(cls, n: int, limit: Optional[int] = None) -> np.ndarray:
-        """An (uninitialized) F-ordered buffer in which an ``n``-sample kernel can be built (its
+        """
+        Return a buffer for an ``n``-sample kernel, factored in place.
+
+        An (uninitialized) F-ordered buffer in which an ``n``-sample kernel can be built (its
         lower triangle in the top-left ``n x n`` block is enough), factored with
         ``cholesky_in_place`` and handed to ``adopt`` without any copy, with the room ``limit``
-        asks for (see the class parameters)."""
+        asks for (see the class parameters).
+        """
         self = cls.__new__(cls)
         self._set_limit(limit, n)
         rows, cols = self._sizes(n)
@@ -137,11 +150,15 @@ class WindowCholesky:
     @classmethod
     def adopt(cls, A: np.ndarray, r: np.ndarray, n: Optional[int] = None,
               limit: Optional[int] = None, z: Optional[np.ndarray] = None) -> 'WindowCholesky':
-        """Take ownership of an F-ordered buffer whose top-left ``n x n`` lower triangle holds the
+        """
+        Take ownership of a buffer holding the factor.
+
+        Take ownership of an F-ordered buffer whose top-left ``n x n`` lower triangle holds the
         factor (e.g. after ``cholesky_in_place``); everything else may hold anything. No copy if
         ``A`` is F-contiguous float64 with at least ``n + 1`` rows and ``n + 1`` columns
         (``workspace`` makes such buffers); otherwise the factor is copied into a new buffer.
-        The caller must not use ``A`` afterwards."""
+        The caller must not use ``A`` afterwards.
+        """
         n = A.shape[0] if n is None else int(n)
         if A.ndim != 2 or n < 1 or n > min(A.shape):
             raise ValueError(f'cannot adopt a {n} x {n} factor from an array of shape {A.shape}')
@@ -166,8 +183,12 @@ class WindowCholesky:
         self._slack = 8 if limit is None else max(8, self._limit // 8)
 
     def _sizes(self, n):
-        """(rows, columns) of a buffer for n samples: rows = capacity, columns = the most
-        samples it can hold."""
+        """
+        Return the buffer size for n samples.
+
+        (rows, columns) of a buffer for n samples: rows = capacity, columns = the most
+        samples it can hold.
+        """
         if self._limit is None:
             cols = n + max(8, n // 2)
             return cols + self._slack, cols
@@ -194,8 +215,11 @@ class WindowCholesky:
         self._cs = np.empty(0)
 
     def _view(self, ncols: int, r0: Optional[int] = None) -> np.ndarray:
-        """Column-major (capacity, ncols) view whose top-left element is (r0, 0): rows 0..n-1
-        of it are the factor. F-contiguous, so f2py hands it to LAPACK without a copy."""
+        """
+        Column-major (capacity, ncols) view whose top-left element is (r0, 0).
+
+        Rows 0..n-1 of it are the factor. F-contiguous, so f2py hands it to LAPACK without a copy.
+        """
         r0 = self._r0 if r0 is None else r0
         return np.ndarray((self._cap, ncols), dtype=float, buffer=self._buf,
                           offset=_F8 * r0, strides=(_F8, _F8 * self._cap))
@@ -205,8 +229,12 @@ class WindowCholesky:
         return self._buf[self._r0:self._r0 + n * (cap + 1):cap + 1][:n]
 
     def _make_room(self, column: bool = True) -> None:
-        """Ensure row r0 + n exists, and column n with ``column`` (one more sample; a drop only
-        needs the row, for z): move the block to row 0, or grow the buffer."""
+        """
+        Ensure row r0 + n exists, and column n with ``column``.
+
+        The column is for one more sample; a drop only needs the row, for z. Move the block to row
+        0, or grow the buffer.
+        """
         n = self._n
         if self._r0 + n + 1 <= self._cap and (n + 1 <= self._cols or not column):
             return
@@ -233,7 +261,7 @@ class WindowCholesky:
 
     @property
     def L(self) -> np.ndarray:
-        """The factor as a new (n, n) lower-triangular array (F-ordered)."""
+        """Get the factor as a new (n, n) lower-triangular array (F-ordered)."""
         L = self._view(self._n)[:self._n, :].copy(order='F')
         L[np.triu_indices(self._n, 1)] = 0.0
         return L
@@ -266,25 +294,33 @@ class WindowCholesky:
 
     # ------------------------------------------------------------------ updates
     def append(self, c: np.ndarray, d: float, floor: float, r_new: float) -> None:
-        """Add a sample: ``c`` (n,) its kernel column against the current samples, ``d`` its
-        kernel diagonal (noise and jitter included), ``r_new`` its right-hand-side entry.
+        """
+        Add a sample.
+
+        ``c`` (n,) its kernel column against the current samples, ``d`` its kernel diagonal (noise
+        and jitter included), ``r_new`` its right-hand-side entry.
 
         The Schur complement ``d - l^T l`` of ``K + floor I`` is at least ``floor`` exactly;
-        rounding below it (a near-duplicate sample) is clamped there."""
-        l = self.solve(c)
-        lnn = math.sqrt(max(d - float(l @ l), floor))
+        rounding below it (a near-duplicate sample) is clamped there.
+        """
+        l_row = self.solve(c)
+        lnn = math.sqrt(max(d - float(l_row @ l_row), floor))
         self._make_room()
         n, cap = self._n, self._cap
         o = self._r0 + n
         row = self._buf[o:o + cap * n + 1:cap]      # row r0 + n, columns 0..n
-        row[:n] = l
+        row[:n] = l_row
         row[n] = lnn
-        self._z = np.append(self._z, (r_new - float(l @ self._z)) / lnn)
+        self._z = np.append(self._z, (r_new - float(l_row @ self._z)) / lnn)
         self._n = n + 1
 
     def drop_first(self) -> None:
-        """Remove the oldest sample: ``K[1:, 1:] = L21 L21^T + L22 L22^T``, a rank-one update of
-        ``L22`` (see the module docstring), applied to ``z`` too."""
+        """
+        Remove the oldest sample.
+
+        ``K[1:, 1:] = L21 L21^T + L22 L22^T``, a rank-one update of ``L22`` (see the module
+        docstring), applied to ``z`` too.
+        """
         n = self._n
         if n < 2:
             raise ValueError('cannot drop the only sample')
@@ -313,8 +349,12 @@ class WindowCholesky:
         self._n = m
 
     def _rotations(self, m: int) -> Optional[np.ndarray]:
-        """(2, m) array of the drop's rotations (c, s) from ``p = L22^-1 x``, or None if p is
-        not finite (singular or overflowing)."""
+        """
+        Compute the drop's rotations.
+
+        (2, m) array of the drop's rotations (c, s) from ``p = L22^-1 x``, or None if p is
+        not finite (singular or overflowing).
+        """
         cap, r0, buf = self._cap, self._r0, self._buf
         L22 = np.ndarray((cap, m), dtype=float, buffer=buf, offset=_F8 * (r0 + 1 + cap),
                          strides=(_F8, _F8 * cap))

@@ -1,4 +1,5 @@
-"""The ``certified`` passivity policy: a structural certificate of the posterior ``D_hat`` itself.
+"""
+The ``certified`` passivity policy: a structural certificate of the posterior ``D_hat`` itself.
 
 Three proofs, tried in order (docs/PASSIVITY.md):
 
@@ -25,8 +26,8 @@ import numpy as np
 from .copositive import max_scale, norm_margin
 from .passivity import Certificate, PassivityPolicy
 from .repair import diagonal_rows, find_violations, power_rows, repair
-from .verify import verify_diagonal
 from .verify import verify_box
+from .verify import verify_diagonal
 
 __all__ = ['CertifiedPolicy']
 
@@ -80,7 +81,7 @@ class CertifiedPolicy(PassivityPolicy):
 
     # ---------------------------------------------------------------- domains
     def _hull(self, box):
-        """The data box joined with the declared operating domain (if any)."""
+        """Return the data box joined with the declared operating domain (if any)."""
         od = self.options.operating_domain
         if od is None:
             return box
@@ -115,8 +116,11 @@ class CertifiedPolicy(PassivityPolicy):
         return post
 
     def after_update(self, post, Q_new):
-        """The O(n) global bound at the current scale; else grow the domain to the data and
-        mark the certificate stale."""
+        """
+        Check the O(n) global bound at the current scale.
+
+        Else grow the domain to the data and mark the certificate stale.
+        """
         t0 = time.perf_counter()
         m = norm_margin(post.mean.diag_inf(), self.scale * post.l1_bound(rkhs=False))
         if m >= 0:
@@ -138,9 +142,13 @@ class CertifiedPolicy(PassivityPolicy):
                                     self.cert.correction_scale, dict(self.cert.details), True)
 
     def recertify(self, post) -> Certificate:
-        """Re-prove a stale certificate: a global certificate is first re-checked with the
-        (tighter than per-update) RKHS bound; a domain certificate by branch-and-bound on its
-        domain, starting from the last proven partition."""
+        """
+        Re-prove a stale certificate.
+
+        A global certificate is first re-checked with the (tighter than per-update) RKHS bound; a
+        domain certificate by branch-and-bound on its domain, starting from the last proven
+        partition.
+        """
         if self.cert is None or not self.cert.stale:
             return self.cert
         t0 = time.perf_counter()
@@ -156,8 +164,12 @@ class CertifiedPolicy(PassivityPolicy):
         return self.cert
 
     def restore_certificate(self, post, saved):
-        """A loaded certificate is not trusted: stale until ``recertify`` proves it again (the
-        saved proof partition is dropped too; the blend keeps the saved domain meanwhile)."""
+        """
+        Distrust a loaded certificate.
+
+        It is stale until ``recertify`` proves it again (the saved proof partition is dropped too;
+        the blend keeps the saved domain meanwhile).
+        """
         self.leaves = None
         method = saved.method if saved is not None else 'a-posteriori-bound'
         if method not in ('a-posteriori-bound', 'domain-bnb+blend', 'prior-only'):
@@ -167,10 +179,13 @@ class CertifiedPolicy(PassivityPolicy):
                                 {'note': 'loaded from a file: not proven yet'}, stale=True)
 
     def _prove(self, post, domains, start: float, reuse: bool) -> None:
-        """Prove on each domain in turn (with repairs of real counterexamples on the first);
-        else shrink the correction (module doc). Up to ``JOINT_MAX_N`` velocities the joint
+        """
+        Prove on each domain in turn (with repairs of real counterexamples on the first).
+
+        Else shrink the correction (module doc). Up to ``JOINT_MAX_N`` velocities the joint
         branch-and-bound (``verify_box``), above it the element-wise proof (diagonal dominance),
-        whose boxes need to be small only along one element's short lengthscales."""
+        whose boxes need to be small only along one element's short lengthscales.
+        """
         joint = post.N <= self.JOINT_MAX_N
         res = None
         reason = ''
@@ -235,12 +250,15 @@ class CertifiedPolicy(PassivityPolicy):
                                     s_lo, {'reason': reason})
 
     def _prove_elementwise(self, post, dom, start, repair_rounds: int, budget: int) -> bool:
-        """Diagonal dominance on the domain: ``D_nn >= sum_{m != n} (B_nm + B_mn) / 2`` for each
-        n by ``verify.verify_diagonal`` (low-dimensional searches, one shared box budget), the
-        off-diagonal elements by their global bounds ``B``. Each round first searches for
-        velocities that break an inequality (sampling; the search's own counterexamples too) and
-        repairs them (cutting planes), then proves; up to ``REPAIR_ROUNDS`` rounds. Sets the
-        certificate and returns True on success."""
+        """
+        Diagonal dominance on the domain.
+
+        ``D_nn >= sum_{m != n} (B_nm + B_mn) / 2`` for each n by ``verify.verify_diagonal``
+        (low-dimensional searches, one shared box budget), the off-diagonal elements by their
+        global bounds ``B``. Each round first searches for velocities that break an inequality
+        (sampling; the search's own counterexamples too) and repairs them (cutting planes), then
+        proves; up to ``REPAIR_ROUNDS`` rounds. Sets the certificate and returns True on success.
+        """
         (ilo, ihi), (olo, ohi) = dom
         N = post.N
         rng = np.random.default_rng(1)
@@ -303,9 +321,13 @@ class CertifiedPolicy(PassivityPolicy):
         return False
 
     def _repair(self, post, dom, start, res):
-        """Cutting planes: make the power non-negative (with a 5 % margin of the prior's) at the
+        """
+        Repair the weights by cutting planes.
+
+        Cutting planes: make the power non-negative (with a 5 % margin of the prior's) at the
         counterexamples found so far by the least change of the weights, re-verify, repeat.
-        Returns the last verification and the repair's record for the certificate."""
+        Returns the last verification and the repair's record for the certificate.
+        """
         (ilo, ihi), (olo, ohi) = dom
         rng = np.random.default_rng(0)
         old = None if post.delta is None else post.delta.copy()
@@ -345,8 +367,12 @@ class CertifiedPolicy(PassivityPolicy):
 
     # ---------------------------------------------------------------- estimates
     def weight(self, Q):
-        """``s * w(q)``: the correction scale times the C2 smootherstep blend that is 1 on the
-        verified box and 0 outside the outer box (only for a domain certificate)."""
+        """
+        Return the correction weight.
+
+        ``s * w(q)``: the correction scale times the C2 smootherstep blend that is 1 on the
+        verified box and 0 outside the outer box (only for a domain certificate).
+        """
         if self.cert is None or self.cert.domain is None or self.domain is None:
             return np.full(Q.shape[0], self.scale)
         return self.scale * _blend(Q, self.domain)
@@ -357,7 +383,7 @@ class CertifiedPolicy(PassivityPolicy):
     # ---------------------------------------------------------------- persistence
     def state(self):
         (ilo, ihi), (olo, ohi) = self.domain
-        arrays = dict(dom_ilo=ilo, dom_ihi=ihi, dom_olo=olo, dom_ohi=ohi)
+        arrays = {'dom_ilo': ilo, 'dom_ihi': ihi, 'dom_olo': olo, 'dom_ohi': ohi}
         if self.leaves is not None:
             arrays['leaves_lo'], arrays['leaves_hi'] = self.leaves
         return {'scale': self.scale}, arrays

@@ -1,4 +1,5 @@
-"""Exact copositivity of small matrices and the margins the passivity proofs use.
+"""
+Exact copositivity of small matrices and the margins the passivity proofs use.
 
 ``A`` is copositive when ``z^T A z >= 0`` for all ``z >= 0``. Kaplan's criterion (Linear Algebra
 Appl. 2000): the minimum of ``z^T A z`` over ``{z >= 0, |z| = 1}`` is the least eigenvalue of a
@@ -17,7 +18,8 @@ _MAX_EXACT_N = 10
 
 
 def copositivity_margin(A: np.ndarray) -> np.ndarray:
-    """Exact ``min { z^T sym(A) z : z >= 0, |z|_2 = 1 }`` for a stack of small matrices.
+    """
+    Exact ``min { z^T sym(A) z : z >= 0, |z|_2 = 1 }`` for a stack of small matrices.
 
     A: (N, N) or (B, N, N). Returns a float (or (B,) array). Copositive iff the result >= 0.
     Exact by Kaplan's criterion (module docstring); 2^N small eigen-problems, so N <= 10.

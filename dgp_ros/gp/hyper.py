@@ -1,4 +1,5 @@
-"""Hyper-parameter learning: type-II maximum likelihood, one output at a time.
+"""
+Hyper-parameter learning: type-II maximum likelihood, one output at a time.
 
 The outputs of a D-GP are independent GPs, so the log marginal likelihood is a sum over outputs
 and each output's kernel parameters (``log sf2`` per element, ``log l`` per element and input
@@ -8,8 +9,8 @@ Data are standardized (``posterior``), so the bounds below are in units of the d
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Optional, Sequence
+import warnings
 
 import numpy as np
 from scipy.linalg.blas import dsymm, dsyr
@@ -33,8 +34,12 @@ def _rms(A: np.ndarray) -> np.ndarray:
 
 
 def scales(Qd: np.ndarray, resid: np.ndarray, Tau: np.ndarray):
-    """Standardization ``(s_x, s_y)``: RMS of the velocities and of the residual after the prior
-    (falling back to the RMS of the force, then 1, where one is 0)."""
+    """
+    Standardization ``(s_x, s_y)``.
+
+    RMS of the velocities and of the residual after the prior (falling back to the RMS of the
+    force, then 1, where one is 0).
+    """
     sx = _rms(Qd)
     sx = np.where(sx > 0, sx, 1.0)
     sy = _rms(resid)
@@ -46,8 +51,12 @@ def scales(Qd: np.ndarray, resid: np.ndarray, Tau: np.ndarray):
 
 def initial_hyper(structure: Structure, Qd: np.ndarray, resid: np.ndarray, Tau: np.ndarray,
                   noise=None) -> Hyper:
-    """Data-driven starting point: ``sf2 = 1 / (elements per output)``, lengthscales = input
-    spread, noise variance 1e-2 (or the fixed ``noise`` std, force units, per output)."""
+    """
+    Data-driven starting point.
+
+    ``sf2 = 1 / (elements per output)``, lengthscales = input spread, noise variance 1e-2 (or the
+    fixed ``noise`` std, force units, per output).
+    """
     N = Qd.shape[1]
     sx, sy = scales(Qd, resid, Tau)
     X = Qd / sx
@@ -73,11 +82,13 @@ def apply_fixed_noise(hp: Hyper, noise) -> None:
 
 
 def _bounds(structure: Structure, X: np.ndarray, m: int):
-    """L-BFGS-B bounds of output m's parameter vector (see ``LmlObjective``).
+    """
+    L-BFGS-B bounds of output m's parameter vector (see ``LmlObjective``).
 
     Standardized units: residual RMS 1 and |x| ~ 1, so sf2 ~ 1 and lengthscales of order the
     data spread; the absolute floor 1e-2 (1 % of the RMS velocity) keeps a fit on a short stretch
-    of data from learning lengthscales nothing later can be compared with."""
+    of data from learning lengthscales nothing later can be compared with.
+    """
     spread = np.std(X, axis=0)
     spread = np.where(spread > 1e-6, spread, 1.0)
     rows = structure.rows[m]
@@ -91,7 +102,8 @@ def _bounds(structure: Structure, X: np.ndarray, m: int):
 
 
 class LmlObjective:
-    """Negative log marginal likelihood of one output and its analytic gradient.
+    """
+    Negative log marginal likelihood of one output and its analytic gradient.
 
     Parameters
     ----------
@@ -112,6 +124,7 @@ class LmlObjective:
     ``[X, 1]``, using ``sum_ij A_ij (x_id - x_jd)^2 = 2 sum_i x_id^2 (A 1)_i - 2 (X^T A X)_dd``
     for the symmetric ``A = W o P_e``: no (N, n, n) tensor, no identity solve, preallocated
     buffers. Tied: one exponent per evaluation; ``K0 = (Phi diag(sf2) Phi^T) o k``.
+
     """
 
     def __init__(self, X: np.ndarray, y: np.ndarray, elems: Sequence[Optional[int]],
@@ -150,7 +163,11 @@ class LmlObjective:
 
     # ------------------------------------------------------------------ kernel pieces
     def _exponent(self, ls: np.ndarray, lsf2: float, out: np.ndarray) -> np.ndarray:
-        """out (n, n) = clip(lsf2 - |u_i - u_j|^2 / 2, floor, lsf2), u = Xc / ls (one GEMM)."""
+        """
+        Compute out (n, n) = clip(lsf2 - |u_i - u_j|^2 / 2, floor, lsf2).
+
+        With u = Xc / ls (one GEMM).
+        """
         N = self.N
         U = self.Xc / ls
         h = -0.5 * np.einsum('ij,ij->i', U, U)
@@ -166,8 +183,12 @@ class LmlObjective:
         return out
 
     def _factor(self, build_K, sn2: float):
-        """dpotrf of K + (sn2 + j) I with chol_jitter's escalation; build_K(Kbuf) writes the
-        noise-free kernel (full square, symmetric). Returns (c, j) or (None, None)."""
+        """
+        Factor the kernel matrix with jitter.
+
+        dpotrf of K + (sn2 + j) I with chol_jitter's escalation; build_K(Kbuf) writes the
+        noise-free kernel (full square, symmetric). Returns (c, j) or (None, None).
+        """
         K = self.K
         build_K(K)
         base = None
@@ -284,7 +305,7 @@ def _minimize(fun, theta, bounds, maxiter, ftol):
     with warnings.catch_warnings():
         warnings.simplefilter('ignore')
         return minimize(fun, theta, jac=True, method='L-BFGS-B', bounds=bounds,
-                        options=dict(maxiter=maxiter, ftol=ftol))
+                        options={'maxiter': maxiter, 'ftol': ftol})
 
 
 def _best(fun, starts, bounds, maxiter, count, ftol=None):
@@ -306,7 +327,8 @@ def learn_hyper(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarr
                 fix_noise: bool = False, n_restarts: int = 2, max_samples: int = 300,
                 random_state: int = 0, maxiter: int = 200, warm: bool = False,
                 schedule: str = 'untied', refine_iter: int = 200) -> tuple:
-    """Maximize the log marginal likelihood of each output, starting from ``hp``.
+    """
+    Maximize the log marginal likelihood of each output, starting from ``hp``.
 
     Qd : (n, N) velocities; resid : (n, N) residuals after the prior mean (model units); at most
     ``max_samples`` random samples are used.

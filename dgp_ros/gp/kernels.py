@@ -1,4 +1,5 @@
-"""The squared-exponential ARD kernel (the one implementation) and the D-GP element structure.
+"""
+The squared-exponential ARD kernel (the one implementation) and the D-GP element structure.
 
 Everything here works in *standardized* coordinates ``x = qd / s_x`` (see ``posterior``).
 
@@ -12,8 +13,8 @@ over its *elements* ``e``: for Full-D-GP the elements ``(m, n)`` of row ``m`` of
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import List, Optional, Tuple
 
 import numpy as np
@@ -29,12 +30,15 @@ _ONE_PASS_MAX_QUERIES = 16
 
 
 def se_ard(X1: np.ndarray, X2: np.ndarray, ls: np.ndarray, sf2) -> np.ndarray:
-    """SE-ARD kernel matrices between two sets of standardized inputs.
+    """
+    SE-ARD kernel matrices between two sets of standardized inputs.
 
     Parameters
     ----------
     X1 : (a, N) array
+        First set of inputs.
     X2 : (b, N) array
+        Second set of inputs.
     ls : (N,) or (E, N) array
         Positive lengthscales, one row per element kernel.
     sf2 : float or (E,) array
@@ -49,6 +53,7 @@ def se_ard(X1: np.ndarray, X2: np.ndarray, ls: np.ndarray, sf2) -> np.ndarray:
     each element's exponent ``log sf2 - |u|^2/2 - |v|^2/2 + u.v`` (``u = x1 / l``) comes out of
     one GEMM with inner dimension N + 2, is clipped at ``log sf2`` (squared distance >= 0) and
     exponentiated in place.
+
     """
     ls = np.asarray(ls, dtype=float)
     single = ls.ndim == 1
@@ -74,9 +79,12 @@ _EXP_FLOOR = -600.0    # exp() below this is 0 for every use here, and denormals
 
 
 def _augmented(X: np.ndarray, ls: np.ndarray, lsf2: float, centre: np.ndarray):
-    """Factors of the SE exponent ``lsf2 - |u_i - v_j|^2 / 2 = Ua_i . Va_j`` (``u = (x - c) / l``,
-    translation invariant, so centring only shrinks |u| and the GEMM's cancellation):
-    ``Ua = [u, lsf2 - |u|^2/2, 1]``, ``Va = [u, 1, -|u|^2/2]``, both (k, N + 2)."""
+    """
+    Factors of the SE exponent ``lsf2 - |u_i - v_j|^2 / 2 = Ua_i .
+
+    Va_j`` (``u = (x - c) / l``, translation invariant, so centring only shrinks |u| and the GEMM's
+    cancellation): ``Ua = [u, lsf2 - |u|^2/2, 1]``, ``Va = [u, 1, -|u|^2/2]``, both (k, N + 2).
+    """
     U = (X - centre) / ls
     h = -0.5 * np.einsum('ij,ij->i', U, U)
     N = U.shape[1]
@@ -106,7 +114,8 @@ def _se_gemm(X1, X2, ls, sf2) -> np.ndarray:
 
 def lower_se_sum(X: np.ndarray, ls_list, sf2_list, feats, out: np.ndarray, noise: float = 0.0,
                  parts=None, block: Optional[int] = None) -> np.ndarray:
-    """The lower triangle of ``sum_e phi_e phi_e^T o k_e(X, X) + noise I``, written in place.
+    """
+    Write the lower triangle of ``sum_e phi_e phi_e^T o k_e(X, X) + noise I`` in place.
 
     X : (n, N); ls_list : per element (N,) lengthscales; sf2_list : per element signal variance;
     feats : per element (n,) feature ``phi_e`` or None; out : F-ordered array with at least n
@@ -163,7 +172,8 @@ def se_bound(sf2: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Structure:
-    """Which damping-matrix elements a model kind has, and which output owns each.
+    """
+    Which damping-matrix elements a model kind has, and which output owns each.
 
     Attributes
     ----------
@@ -174,6 +184,7 @@ class Structure:
         Element ``e`` models ``D[m, n]``; ``n is None`` marks an ARD element (``phi = 1``).
     rows : list of lists
         ``rows[m]``: the element indices of output ``m``.
+
     """
 
     kind: str
@@ -200,7 +211,7 @@ class Structure:
 
     @property
     def has_damping(self) -> bool:
-        """False for the ARD baseline, which models the force directly."""
+        """Return False for the ARD baseline, which models the force directly."""
         return self.kind != 'ard'
 
     def features(self, X: np.ndarray, e: int) -> Optional[np.ndarray]:
@@ -210,7 +221,8 @@ class Structure:
 
     def output_kernels(self, m: int, X1: np.ndarray, X2: np.ndarray, log_ls: np.ndarray,
                        log_sf2: np.ndarray, Kel: Optional[np.ndarray] = None) -> List[tuple]:
-        """Output m's element kernels ``phi_e(x1) phi_e(x2) k_e(x1, x2)`` as a list of (e, (a, b)).
+        """
+        Output m's element kernels ``phi_e(x1) phi_e(x2) k_e(x1, x2)`` as a list of (e, (a, b)).
 
         ``Kel``: raw element kernels ``k_e(X1, X2)`` of every element (E, a, b), used instead of
         building them. Elements with ``sf2 = 0`` (switched off) are left out.

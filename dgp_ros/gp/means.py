@@ -1,4 +1,5 @@
-"""Prior means of the damping force: passive by construction (the paper's Assumption 2).
+"""
+Prior means of the damping force: passive by construction (the paper's Assumption 2).
 
 A D-GP prior mean is ``m_tau(qd) = diag(m_d(qd)) qd`` with ``m_d(qd) >= 0`` element-wise, so it
 dissipates ``sum_n m_d,n(qd) qd_n^2 >= 0`` for every ``qd``. Optionally a per-joint constant
@@ -31,7 +32,8 @@ PRIORS = ('viscous', 'friction', 'friction+stribeck')
 
 
 def prior_mean_diag(Qd, Tau) -> np.ndarray:
-    """Least-squares diagonal prior damping ``m_dn = <qd_n, tau_n> / <qd_n, qd_n>``, clamped at 0.
+    """
+    Least-squares diagonal prior damping ``m_dn = <qd_n, tau_n> / <qd_n, qd_n>``, clamped at 0.
 
     Qd, Tau: (n, N) (n may be 0). Returns (N,), in units of tau per unit qd. A dimension with
     no excitation (``<qd_n, qd_n> = 0``) gets 0.
@@ -64,11 +66,11 @@ class PriorMean:
         return self.bias.size
 
     def __call__(self, Qd: np.ndarray) -> np.ndarray:
-        """The prior of the measured force, damping part plus bias, (k, N)."""
+        """Return the prior of the measured force, damping part plus bias, (k, N)."""
         return self.force(Qd) + self.bias
 
     def force(self, Qd: np.ndarray) -> np.ndarray:
-        """The damping part ``diag(m_d(qd)) qd``, (k, N)."""
+        """Return the damping part ``diag(m_d(qd)) qd``, (k, N)."""
         return self.diag(Qd) * Qd
 
     def diag(self, Qd: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
@@ -83,7 +85,7 @@ class PriorMean:
         raise NotImplementedError  # pragma: no cover
 
     def diag_ref(self) -> np.ndarray:
-        """A typical ``m_d`` per joint, (N,), to normalize certificate margins."""
+        """Return a typical ``m_d`` per joint, (N,), to normalize certificate margins."""
         return self.diag_inf()
 
     # persistence: plain numbers and arrays only
@@ -96,7 +98,8 @@ class PriorMean:
 
 
 class ViscousMean(PriorMean):
-    """``m_d`` constant per joint; see the module docstring.
+    """
+    ``m_d`` constant per joint; see the module docstring.
 
     Without bias ``m_d`` is :func:`prior_mean_diag`; with bias, ``m_d >= 0`` and ``b`` come from
     one bounded least-squares problem per joint.
@@ -152,7 +155,8 @@ def _tanh_over(v: np.ndarray, eps: np.ndarray) -> np.ndarray:
 
 
 class FrictionMean(PriorMean):
-    """Coulomb + viscous (+ Stribeck) per joint; see the module docstring.
+    """
+    Coulomb + viscous (+ Stribeck) per joint; see the module docstring.
 
     Parameters
     ----------
@@ -160,6 +164,7 @@ class FrictionMean(PriorMean):
         Add the Stribeck term ``F_s tanh(v / eps) exp(-(v / v_s)^2)``.
     bias : bool
         Learn a per-joint constant bias jointly (reported apart from the damping force).
+
     """
 
     name = 'friction'
@@ -209,7 +214,8 @@ class FrictionMean(PriorMean):
                     A = self._basis(v, eps, vs)
                     if self.stribeck and np.mean(np.abs(v) < vs) < self.STRIBECK_EVIDENCE:
                         A = A[:, :2]
-                    c, b, res = _nnls_one(A, Tau[:, j], bias, np.r_[np.inf, fmax, fmax][:A.shape[1]])
+                    c, b, res = _nnls_one(A, Tau[:, j], bias,
+                                          np.r_[np.inf, fmax, fmax][:A.shape[1]])
                     if best is None or res < best[0] - 1e-12 * abs(best[0]):
                         best = (res, c, b, eps, vs)
             _, c, b, self.eps[j], self.v_s[j] = best
@@ -281,12 +287,14 @@ class ConstantMean(PriorMean):
 
 
 def _nnls_one(A: np.ndarray, y: np.ndarray, bias: bool, ub: Optional[np.ndarray] = None):
-    """min |A c + b - y|^2 (+ 0.01 n b^2) with 0 <= c (<= ub) (and b free if ``bias``).
+    """
+    Solve min |A c + b - y|^2 (+ 0.01 n b^2) with 0 <= c (<= ub) (and b free if ``bias``).
 
     Returns (c, b, residual^2). The weak ridge on ``b`` only matters where the data cannot tell
     a bias from Coulomb friction (a joint that moved one way only: ``tanh(v / eps)`` is then
     constant too); there it keeps ``b`` small instead of trading a large bias against a large
-    Coulomb force."""
+    Coulomb force.
+    """
     k = A.shape[1]
     n = A.shape[0]
     if n == 0:
@@ -320,7 +328,8 @@ _BY_NAME = {'viscous': ViscousMean, 'friction': FrictionMean, 'constant': Consta
 
 
 def make_mean(prior: str, kind: str, bias: bool = False) -> PriorMean:
-    """The prior mean for a model kind: 'ard' always gets :class:`ConstantMean`.
+    """
+    Make the prior mean for a model kind: 'ard' always gets :class:`ConstantMean`.
 
     prior : 'viscous' | 'friction' | 'friction+stribeck'
     """

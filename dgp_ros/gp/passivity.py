@@ -1,4 +1,5 @@
-"""Passivity: the policy registry, the certificate record, copositivity and the projection.
+"""
+Passivity: the policy registry, the certificate record, copositivity and the projection.
 
 A damping model ``tau_hat(q) = D(q) q`` is *passive* when ``P(q) = q^T D(q) q >= 0``. If
 ``|D_mn(q) - M_mn(q)| <= B_mn`` with the prior ``M(q) = diag(m_d(q))``, ``m_d >= m_inf``, then with
@@ -17,9 +18,9 @@ the one place that makes an estimate passive (``finalize``).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field, replace
 import math
 import time
-from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
@@ -34,7 +35,8 @@ __all__ = ['Certificate', 'copositivity_margin', 'project_passive', 'projection_
 # ---------------------------------------------------------------------------- the record
 @dataclass(frozen=True)
 class Certificate:
-    """Outcome of a passivity proof: a cheap record, read without any computation.
+    """
+    Outcome of a passivity proof: a cheap record, read without any computation.
 
     certified : True when ``q^T D(q) q >= 0`` is proven for the model as it is now (for
         ``projected``: every published estimate, pointwise).
@@ -83,16 +85,19 @@ class Certificate:
 
 # ---------------------------------------------------------------------------- numerics
 def passive_tolerance(Q: np.ndarray, Tau: np.ndarray) -> np.ndarray:
-    """Rounding tolerance of ``q^T tau`` per row, (k,): ``8 eps sum_n |q_n| |tau_n|``.
+    """
+    Return the rounding tolerance of ``q^T tau`` per row, (k,): ``8 eps sum_n |q_n| |tau_n|``.
 
     A computed power in ``[-tol, 0)`` is rounding, not a violation; the decisions that replace an
-    estimate use ``P < -tol``."""
+    estimate use ``P < -tol``.
+    """
     return 8.0 * np.finfo(float).eps * np.einsum('ij,ij->i', np.abs(Q), np.abs(Tau))
 
 
 def projection_lambda(Q: np.ndarray, Tau: np.ndarray, w_inv: Optional[np.ndarray] = None
                       ) -> np.ndarray:
-    """Multiplier ``lambda(q) = max(0, -q^T tau) / (q^T W^-1 q)`` of the passivity projection.
+    """
+    Multiplier ``lambda(q) = max(0, -q^T tau) / (q^T W^-1 q)`` of the passivity projection.
 
     Q, Tau: (k, N); w_inv: (N,) diagonal of ``W^-1`` (default ones). Returns (k,); 0 where q = 0.
     """
@@ -107,7 +112,8 @@ def projection_lambda(Q: np.ndarray, Tau: np.ndarray, w_inv: Optional[np.ndarray
 
 def project_passive(Q: np.ndarray, Tau: np.ndarray, w_inv: Optional[np.ndarray] = None
                     ) -> np.ndarray:
-    """Nearest point (in the ``W`` norm) of ``{tau : q^T tau >= 0}`` to each row of ``Tau``.
+    """
+    Nearest point (in the ``W`` norm) of ``{tau : q^T tau >= 0}`` to each row of ``Tau``.
 
     Q, Tau: (k, N). Returns (k, N) with ``q^T tau_p = max(q^T tau, 0)`` row by row. The set is
     convex and contains every passive truth, so the projection never moves an estimate further
@@ -144,7 +150,8 @@ class PolicyOptions:
 
 
 class PassivityPolicy:
-    """Base policy: how one mode makes a model's estimates passive.
+    """
+    Base policy: how one mode makes a model's estimates passive.
 
     Class attributes (the registry's rules):
     name : the mode name; summary : one line for --help, parameter descriptions and docs;
@@ -176,8 +183,12 @@ class PassivityPolicy:
         return self.cert
 
     def restore_certificate(self, post, saved: Optional[Certificate]) -> None:
-        """After loading a model: re-derive the certificate (cheap proofs are recomputed,
-        expensive ones are marked stale); ``saved`` (the file's record) is never trusted."""
+        """
+        Re-derive the certificate after loading a model.
+
+        After loading a model: re-derive the certificate (cheap proofs are recomputed,
+        expensive ones are marked stale); ``saved`` (the file's record) is never trusted.
+        """
         self.enforce(post)
 
     # estimates ---------------------------------------------------------------
@@ -186,8 +197,11 @@ class PassivityPolicy:
         return None
 
     def finalize(self, post, Q, tau, D):
-        """Make the estimate passive (the one place in the model); tau (k, N), D (k, N, N) or
-        None. Returns (tau, D)."""
+        """
+        Make the estimate passive (the one place in the model); tau (k, N), D (k, N, N) or None.
+
+        Returns (tau, D).
+        """
         return tau, D
 
     # persistence -------------------------------------------------------------
@@ -199,8 +213,12 @@ class PassivityPolicy:
         """Inverse of ``state``; validates shapes against ``post``."""
 
     def _stale_fallback(self, post, Q, tau, D):
-        """Pointwise guarantee of a stale certificate: a query whose power is negative beyond
-        rounding gets the prior mean there."""
+        """
+        Apply the pointwise guarantee of a stale certificate.
+
+        Pointwise guarantee of a stale certificate: a query whose power is negative beyond
+        rounding gets the prior mean there.
+        """
         if self.cert is None or not self.cert.stale:
             return tau, D
         bad = np.einsum('ij,ij->i', Q, tau) < -passive_tolerance(Q, tau)
@@ -227,7 +245,8 @@ def diag_embed(d: np.ndarray) -> np.ndarray:
 class NonePolicy(PassivityPolicy):
     needs_rkhs = True
     name = 'none'
-    summary = 'nothing enforced; certificate() reports whether the a-posteriori bound happens to hold'
+    summary = ('nothing enforced; certificate() reports whether the a-posteriori bound happens '
+               'to hold')
 
     def enforce(self, post, rkhs: bool = True):
         if not post.structure.has_damping:
@@ -334,13 +353,13 @@ class PaperPolicy(PassivityPolicy):
 
 
 def policy_class(mode: str):
-    """The policy class of a mode; ValueError naming the choices."""
+    """Return the policy class of a mode; ValueError naming the choices."""
     check_mode(mode)
     return POLICIES[mode]
 
 
 def check_mode(mode: str, kind: Optional[str] = None) -> None:
-    """ValueError unless ``mode`` is a passivity mode (that applies to model ``kind``)."""
+    """Raise ValueError unless ``mode`` is a passivity mode (that applies to model ``kind``)."""
     if mode not in POLICIES:
         raise ValueError(f'passivity must be one of {", ".join(PASSIVITY_MODES)}, got {mode!r}')
     cls = POLICIES[mode]
@@ -351,7 +370,7 @@ def check_mode(mode: str, kind: Optional[str] = None) -> None:
 
 
 def modes_for(kind: str) -> tuple:
-    """The passivity modes that apply to a model kind, in registry order."""
+    """Return the passivity modes that apply to a model kind, in registry order."""
     return tuple(m for m in PASSIVITY_MODES if kind in policy_class(m).kinds)
 
 
@@ -360,7 +379,7 @@ def describe_modes() -> str:
     return '; '.join(f'{m}: {policy_class(m).summary}' for m in PASSIVITY_MODES)
 
 
-from .certified import CertifiedPolicy  # noqa: E402  (it builds on the classes above)
+from .certified import CertifiedPolicy  # noqa: E402,I100  (it builds on the classes above)
 
 #: The registry: mode name -> policy class, in the order modes are listed everywhere.
 POLICIES = {'none': NonePolicy, 'paper': PaperPolicy, 'certified': CertifiedPolicy,

@@ -1,4 +1,5 @@
-"""Model files: an ``.npz`` of plain arrays plus a JSON header; no pickle, bounded reads.
+"""
+Model files: an ``.npz`` of plain arrays plus a JSON header; no pickle, bounded reads.
 
 Writing is atomic (temp file in the same directory, fsync, ``os.replace``): a reader sees the old
 file or the new one. The header carries the format version, the model kind and sizes, the
@@ -91,7 +92,7 @@ def save_model(model, path) -> None:
 
 
 def _jsonable(x):
-    """Constructor arguments as JSON: arrays and tuples become lists."""
+    """Convert constructor arguments to JSON: arrays and tuples become lists."""
     if isinstance(x, dict):
         return {k: _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -125,8 +126,12 @@ def _expected_shapes(kind: str, N: int, n: int, E: int) -> dict:
 
 
 def is_model_file(path) -> bool:
-    """True when ``path`` is a regular file whose header says it is a dgp_ros model (any format
-    version); reads the header member only. Never raises."""
+    """
+    Tell whether ``path`` is a dgp_ros model file.
+
+    True when ``path`` is a regular file whose header says it is a dgp_ros model (any format
+    version); reads the header member only. Never raises.
+    """
     try:
         st = os.lstat(path)
         if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_FILE_BYTES:
@@ -139,7 +144,8 @@ def is_model_file(path) -> bool:
 
 
 def load_model(path):
-    """Load any model written by ``save`` (the module docstring says what is checked).
+    """
+    Load any model written by ``save`` (the module docstring says what is checked).
 
     Raises ValueError with a reason for anything that is not a usable dgp_ros model file.
     """

@@ -375,10 +375,14 @@ class Posterior:
         return tau, var
 
     def _element_weights(self, Kel: np.ndarray) -> np.ndarray:
-        """``G[k, m, n] = sum_j k_e(x_k, x_j) phi_n(x_j) w_jm`` for the elements ``e = (m, n)``
+        """
+        Compute the element weights ``G`` from raw element kernels.
+
+        ``G[k, m, n] = sum_j k_e(x_k, x_j) phi_n(x_j) w_jm`` for the elements ``e = (m, n)``
         that are on (the others 0), from raw element kernels ``Kel`` (E, k, n_train); ARD
         elements (phi = 1) sit in column 0. Output m's correction is ``sum_n G[:, m, n]
-        phi_n(x)``; the damping entry (m, n) is ``G[:, m, n]`` (model units)."""
+        phi_n(x)``; the damping entry (m, n) is ``G[:, m, n]`` (model units).
+        """
         s, hp = self.structure, self.hyper
         rows = np.array([m for m, _ in s.elems])
         cols = np.array([0 if n is None else n for _, n in s.elems])

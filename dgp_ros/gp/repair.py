@@ -1,5 +1,8 @@
-"""Local passivity repair of a D-GP posterior: the smallest change of its weights that makes the
-dissipated power non-negative at given velocities (cutting planes for the certified policy).
+"""
+Local passivity repair of a D-GP posterior.
+
+The smallest change of its weights that makes the dissipated power non-negative at given velocities
+(cutting planes for the certified policy).
 
 The posterior mean is linear in its weights ``w = alpha + delta``: at a velocity ``z``,
 
@@ -17,8 +20,8 @@ mean changes only near the counterexamples, by kernel bumps centred on the train
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Callable, Tuple
+import warnings
 
 import numpy as np
 from scipy.optimize import minimize
@@ -29,8 +32,12 @@ __all__ = ['power_rows', 'diagonal_rows', 'repair', 'find_violations']
 
 
 def power_rows(post, Z: np.ndarray, weight: np.ndarray) -> Tuple[np.ndarray, list]:
-    """(prior power (J,), [G_m (J, n) for each output]) of the velocities Z (J, N), model units;
-    ``weight`` (J,) is the correction weight ``s(z)``."""
+    """
+    Return the rows of the power constraints at velocities Z.
+
+    (prior power (J,), [G_m (J, n) for each output]) of the velocities Z (J, N), model units;
+    ``weight`` (J,) is the correction weight ``s(z)``.
+    """
     s, hp = post.structure, post.hyper
     X = Z / hp.sx
     p0 = np.einsum('jn,jn->j', Z * post.mean.diag(Z), Z)
@@ -47,8 +54,11 @@ def power_rows(post, Z: np.ndarray, weight: np.ndarray) -> Tuple[np.ndarray, lis
 
 
 def diagonal_rows(post, Z: np.ndarray, weight: np.ndarray, n: int) -> Tuple[np.ndarray, list]:
-    """As ``power_rows`` for ``D_nn(z)`` instead of the power: (prior m_n(z) (J,), G list with
-    only output n's row block non-zero)."""
+    """
+    As ``power_rows`` for ``D_nn(z)`` instead of the power.
+
+    (prior m_n(z) (J,), G list with only output n's row block non-zero).
+    """
     s, hp = post.structure, post.hyper
     X = Z / hp.sx
     p0 = post.mean.diag(Z)[:, n].copy()
@@ -64,7 +74,10 @@ def diagonal_rows(post, Z: np.ndarray, weight: np.ndarray, n: int) -> Tuple[np.n
 
 
 def repair(post, rows: Tuple[np.ndarray, list], margin: np.ndarray) -> Tuple[np.ndarray, dict]:
-    """The least change of the weights (n, N) with ``p0_j + sum_m G_m[j] . w_m >= margin_j``.
+    """
+    Find the least change of the weights (n, N) with ``p0_j + sum_m G_m[j] .
+
+    w_m >= margin_j``.
 
     ``rows``: (p0 (J,), [G_m (J, n)]) from ``power_rows`` (the dissipated power at the
     counterexamples) or ``diagonal_rows``. Returns ``(delta_change, info)``; info: constraints,
@@ -87,22 +100,26 @@ def repair(post, rows: Tuple[np.ndarray, list], margin: np.ndarray) -> Tuple[np.
     with warnings.catch_warnings():
         warnings.simplefilter('ignore')
         res = minimize(dual, np.zeros(J), jac=True, method='L-BFGS-B',
-                       bounds=[(0.0, None)] * J, options=dict(maxiter=2000, ftol=1e-15,
-                                                              gtol=1e-12))
+                       bounds=[(0.0, None)] * J, options={'maxiter': 2000, 'ftol': 1e-15,
+                                                          'gtol': 1e-12})
     lam = np.maximum(res.x, 0.0)
     delta = np.column_stack([f.solve(f.solve(U[m] @ lam), trans=True)
                              for m, f in enumerate(post.factors)])
     after = P + sum(G[m] @ delta[:, m] for m in range(post.N))
     tol = 1e-9 * (np.abs(p0) + np.abs(P) + 1e-300)
-    return delta, dict(constraints=J, active=int(np.sum(lam > 0)), iterations=int(res.nit),
-                       holds=bool(np.all(after >= margin - tol)))
+    return delta, {'constraints': J, 'active': int(np.sum(lam > 0)), 'iterations': int(res.nit),
+                   'holds': bool(np.all(after >= margin - tol))}
 
 
 def find_violations(power: Callable[[np.ndarray], np.ndarray], post, lo: np.ndarray,
                     hi: np.ndarray, rng, k: int = 20000, keep: int = 200) -> np.ndarray:
-    """Velocities in the box ``[lo, hi]`` where ``power(Z)`` (the published model's dissipated
+    """
+    Search for velocities where the power is negative.
+
+    Velocities in the box ``[lo, hi]`` where ``power(Z)`` (the published model's dissipated
     power) is negative: searched uniformly and near the training velocities (violations sit
-    where non-passive samples pulled the posterior). The most negative ``keep``, (J, N)."""
+    where non-passive samples pulled the posterior). The most negative ``keep``, (J, N).
+    """
     Qd = post.Qd
     ls = np.exp(post.hyper.log_ls).min(axis=0) * post.hyper.sx     # shortest lengthscales
     near = Qd[rng.integers(0, len(Qd), k)] + rng.normal(size=(k, Qd.shape[1])) * ls / 3.0

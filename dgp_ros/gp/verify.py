@@ -1,4 +1,7 @@
-"""Rigorous branch-and-bound verification of ``q^T D(q) q >= 0`` on a box (the structural certificate).
+"""
+Rigorous branch-and-bound verification of ``q^T D(q) q >= 0`` on a box.
+
+The structural certificate.
 
 The posterior damping matrix of a D-GP is ``D(q) = diag(m_d) + C(q)`` with
 ``C_mn(q) = f_mn * sum_i a_{mn,i} * sf2_mn * exp(-0.5 |(x - x_i) / l_mn|^2)`` (``x = q / s_x``
@@ -20,8 +23,8 @@ uncertified, when ``max_boxes`` boxes have been examined. Cost per examined box:
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
+import time
 from typing import Callable, Optional
 
 import numpy as np
@@ -33,7 +36,8 @@ __all__ = ['CorrectionTerms', 'verify_box', 'verify_diagonal', 'BoxResult']
 
 @dataclass
 class CorrectionTerms:
-    """The GP correction of a D-GP in verifiable form (see module docstring).
+    """
+    The GP correction of a D-GP in verifiable form (see module docstring).
 
     X: (n, N) standardized training inputs; elems: list of (m, n); sf2: (E,); ls: (E, N);
     coef: (E, n) = x_{n,i} * alpha_{m,i} * correction_scale; mean: the prior mean
@@ -60,15 +64,20 @@ class CorrectionTerms:
             for e in range(len(self.elems)):
                 a = self.coef[e]
                 if self.sf2[e] > 0 and np.any(a):
-                    r[e] = np.sqrt(max(float(a @ se_ard(self.X, self.X, self.ls[e], 1.0) @ a), 0.0))
+                    r[e] = np.sqrt(max(float(a @ se_ard(self.X, self.X, self.ls[e], 1.0) @ a),
+                                       0.0))
             self.rkhs = r
 
 
 @dataclass
 class BoxResult:
-    """Result of ``verify_box``: ``ok``; ``margin`` (normalized, min over proven leaves);
-    ``leaves`` (lo, hi) arrays of the proven partition (reused to re-verify after an update);
-    ``boxes`` examined; ``seconds``; ``witness`` q with P(q) < 0 when one was found."""
+    """
+    Result of ``verify_box``.
+
+    ``ok``; ``margin`` (normalized, min over proven leaves); ``leaves`` (lo, hi) arrays of the
+    proven partition (reused to re-verify after an update); ``boxes`` examined; ``seconds``;
+    ``witness`` q with P(q) < 0 when one was found.
+    """
 
     ok: bool
     margin: float
@@ -85,8 +94,10 @@ def _split_at_zero(lo: np.ndarray, hi: np.ndarray):
         nxt = []
         for bl, bh in boxes:
             if bl[d] < 0.0 < bh[d]:
-                a_hi = bh.copy(); a_hi[d] = 0.0
-                b_lo = bl.copy(); b_lo[d] = 0.0
+                a_hi = bh.copy()
+                a_hi[d] = 0.0
+                b_lo = bl.copy()
+                b_lo[d] = 0.0
                 nxt += [(bl, a_hi), (b_lo, bh)]
             else:
                 nxt.append((bl, bh))
@@ -95,17 +106,20 @@ def _split_at_zero(lo: np.ndarray, hi: np.ndarray):
 
 
 def _d_interval(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray):
-    """Interval bounds of D over boxes. lo, hi: (B, N) model units. Returns Dlo, Dhi (B, N, N).
+    """
+    Interval bounds of D over boxes.
+
+    lo, hi: (B, N) model units. Returns Dlo, Dhi (B, N, N).
 
     Two rigorous enclosures per element, intersected:
     - natural: each exponential between its values at the farthest / nearest box point;
     - second-order centred: exact value and gradient at the box centre ``c`` plus a Hessian
       bound, using ``|d2 k / dx_d dx_e| <= sf2 (1 + r^2) exp(-r^2/2) / (l_d l_e)`` and that
-      ``(1 + r^2) exp(-r^2/2)`` decreases for ``r >= 1`` (max ``2 e^-1/2`` at ``r = 1``), with ``r``
-      the scaled distance from the box to the training point, or, whichever is smaller, the RKHS
-      bound ``|d2 g| <= sqrt(3) |g|_H sqrt(sf2) / (l_d l_e)`` with ``|g|_H^2 = a^T K_e a``, which
-      sees the cancellation of alternating-sign GP weights. The remainder shrinks with the square
-      of the box width.
+      ``(1 + r^2) exp(-r^2/2)`` decreases for ``r >= 1`` (max ``2 e^-1/2`` at ``r = 1``), with
+      ``r`` the scaled distance from the box to the training point, or, whichever is smaller, the
+      RKHS bound ``|d2 g| <= sqrt(3) |g|_H sqrt(sf2) / (l_d l_e)`` with ``|g|_H^2 = a^T K_e a``,
+      which sees the cancellation of alternating-sign GP weights. The remainder shrinks with the
+      square of the box width.
     """
     B, N = lo.shape
     bl = lo / T.sx
@@ -174,7 +188,11 @@ def _matrix_test(lo, hi, Dlo, Dhi, scale):
 
 
 def _power_test(lo, hi, Dlo, Dhi, mean_diag):
-    """Test (b). Lower bound of sum_mn q_m D_mn q_n over each box, normalized. (B,)"""
+    """
+    Test (b).
+
+    Lower bound of sum_mn q_m D_mn q_n over each box, normalized. (B,)
+    """
     B, N = lo.shape
     # q_m q_n intervals
     p = np.stack([lo[:, :, None] * lo[:, None, :], lo[:, :, None] * hi[:, None, :],
@@ -195,7 +213,8 @@ def _power_test(lo, hi, Dlo, Dhi, mean_diag):
 
 def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes: int = 20000,
                batch: int = 512, leaves: Optional[tuple] = None, tol: float = 0.0) -> BoxResult:
-    """Prove ``q^T D(q) q >= 0`` for all q in the box ``[lo, hi]`` (model units, (N,) each).
+    """
+    Prove ``q^T D(q) q >= 0`` for all q in the box ``[lo, hi]`` (model units, (N,) each).
 
     leaves: a previous partition of the same box (from ``BoxResult.leaves``) to start from.
     Returns a ``BoxResult``; ``ok`` is rigorous (up to floating-point rounding of the bounds).
@@ -246,8 +265,10 @@ def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes:
         d = np.argmax(width, axis=1)
         r = np.arange(len(fl))
         mid = centre[r, d]
-        a_hi = fh.copy(); a_hi[r, d] = mid
-        b_lo = fl.copy(); b_lo[r, d] = mid
+        a_hi = fh.copy()
+        a_hi[r, d] = mid
+        b_lo = fl.copy()
+        b_lo[r, d] = mid
         qlo = np.concatenate([qlo, fl, b_lo])
         qhi = np.concatenate([qhi, a_hi, fh])
     leaves_out = (np.concatenate(done_lo) if done_lo else np.zeros((0, lo.size)),
@@ -259,7 +280,8 @@ def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes:
 
 def verify_diagonal(T: CorrectionTerms, n: int, lo: np.ndarray, hi: np.ndarray, beta: float, *,
                     max_boxes: int = 20000, batch: int = 512) -> BoxResult:
-    """Prove ``D_nn(q) >= beta`` for all q in the box ``[lo, hi]`` (model units).
+    """
+    Prove ``D_nn(q) >= beta`` for all q in the box ``[lo, hi]`` (model units).
 
     With ``beta_n = sum_{m != n} (B_nm + B_mn) / 2`` from the global bounds of the off-diagonal
     elements, these N scalar proofs give passivity by diagonal dominance

@@ -1,9 +1,11 @@
-"""Online D-GP estimation: the one implementation behind the ROS node, bag replay and the demo.
+"""
+Online D-GP estimation: the one implementation behind the ROS node, bag replay and the demo.
 
 No rclpy here (everything a node does can be done offline)::
 
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
-    est = OnlineEstimator(EstimatorConfig(refit_mode='sync'))   # same names as the node's parameters
+    # EstimatorConfig: the same names as the node's parameters
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync'))
     e = est.process(stamp_s, names, velocity, effort)          # -> Estimate, or None if rejected
     est.diagnostics()                                          # dict: level, message, counters
 
@@ -13,7 +15,7 @@ Modules: ``config`` (parameters and their specs), ``estimator`` (the message pat
 from dgp_ros.gp import KINDS as MODELS
 from dgp_ros.gp import PASSIVITY_MODES
 
-from .config import PARAMS, REFIT_MODES, SELECTION_POLICIES, EstimatorConfig, ParamSpec
+from .config import EstimatorConfig, PARAMS, ParamSpec, REFIT_MODES, SELECTION_POLICIES
 from .estimator import Estimate, OnlineEstimator
 from .health import ERROR, OK, REJECT_REASONS, WARN
 

@@ -1,4 +1,5 @@
-"""Estimator parameters: one table of specs (name, default, range, description).
+"""
+Estimator parameters: one table of specs (name, default, range, description).
 
 The same table serves the ROS node (parameter declarations with ``ParameterDescriptor`` ranges,
 ``--help``), ``dgp-replay --set`` and the YAML defaults file (a test keeps them in sync), so a
@@ -8,13 +9,13 @@ sets at run time can neither overflow a timer nor allocate without bound.
 from __future__ import annotations
 
 import dataclasses
-import os
 from dataclasses import dataclass, field
+import os
 from typing import List
 
 from dgp_ros.gp import KINDS, PASSIVITY_MODES, PRIORS
 from dgp_ros.gp.passivity import check_mode, describe_modes
-from dgp_ros.params import ParamSpec, check_spec
+from dgp_ros.params import check_spec, ParamSpec
 
 __all__ = ['ParamSpec', 'PARAMS', 'EstimatorConfig', 'SELECTION_POLICIES', 'REFIT_MODES',
            'MODEL_SUFFIX']
@@ -62,10 +63,10 @@ PARAMS = {p.name: p for p in (
               '(out_of_range)', low=1e-9, high=1e6),
     ParamSpec('max_abs_effort', 'float', 1.0e8, '|effort| above this: message rejected '
               '(out_of_range)', low=1e-9, high=1e12),
-    ParamSpec('inverse_dynamics', 'str', '', "rigid-body model subtracted from the effort before "
+    ParamSpec('inverse_dynamics', 'str', '', 'rigid-body model subtracted from the effort before '
               "learning: '' (the effort already is the damping force), 'urdf' (pinocchio, from "
               "robot_description or urdf_file) or 'python:<module>:<function>' "
-              "(f(q, qd, qdd) -> tau_rb); start-up only", max_len=4096, read_only=True),
+              '(f(q, qd, qdd) -> tau_rb); start-up only', max_len=4096, read_only=True),
     ParamSpec('robot_description', 'str', '', 'URDF text for inverse_dynamics=urdf (the ROS '
               'convention; wins over urdf_file); start-up only', max_len=50_000_000,
               read_only=True),
@@ -77,15 +78,16 @@ PARAMS = {p.name: p for p in (
     ParamSpec('negative_power_warn_fraction', 'float', 0.1, 'WARN when more than this fraction '
               'of the recent learned samples has qd . target < 0 (the data are not damping)',
               low=0.0, high=1.0),
-    ParamSpec('operating_domain', 'float[]', [], "certified: declared operating box "
+    ParamSpec('operating_domain', 'float[]', [], 'certified: declared operating box '
               "[lo_1..lo_N, hi_1..hi_N] in the joints' units, proven with the data box "
-              "([] = data box only)", low=-1e12, high=1e12, max_len=128),
+              '([] = data box only)', low=-1e12, high=1e12, max_len=128),
 )}
 
 
 @dataclass
 class EstimatorConfig:
-    """Parameters of the online estimator; the node's ROS parameters have the same names.
+    """
+    Parameters of the online estimator; the node's ROS parameters have the same names.
 
     Defaults, ranges and descriptions: ``PARAMS`` (printed by ``estimator --help``).
     """
@@ -149,7 +151,7 @@ class EstimatorConfig:
             check_model_path(self.model_path)
         spec = self.inverse_dynamics
         if spec and spec != 'urdf' and not (spec.startswith('python:') and
-                                             len(spec.split(':')) == 3 and all(spec.split(':'))):
+                                            len(spec.split(':')) == 3 and all(spec.split(':'))):
             raise ValueError(f"inverse_dynamics={spec!r}: must be '', 'urdf' or "
                              "'python:<module>:<function>'")
         if spec == 'urdf' and not (self.robot_description or self.urdf_file):
@@ -160,7 +162,7 @@ class EstimatorConfig:
         return self
 
     def check_dimension(self, N: int) -> None:
-        """ValueError when a per-joint parameter does not fit N joints."""
+        """Raise ValueError when a per-joint parameter does not fit N joints."""
         if self.operating_domain and len(self.operating_domain) != 2 * N:
             raise ValueError(f'operating_domain has {len(self.operating_domain)} entries, the '
                              f'{N} joints need {2 * N}')
@@ -189,9 +191,13 @@ class EstimatorConfig:
         return dataclasses.asdict(self)
 
     def model_kwargs(self) -> dict:
-        """Constructor arguments of the GP for this configuration (window, passivity, prior)."""
-        kw = dict(passivity=self.passivity, window=self.buffer_size, prior=self.prior,
-                  bias=bool(self.bias))
+        """
+        Return the GP's constructor arguments for this configuration.
+
+        Window, passivity, prior.
+        """
+        kw = {'passivity': self.passivity, 'window': self.buffer_size, 'prior': self.prior,
+              'bias': bool(self.bias)}
         if self.operating_domain and self.passivity == 'certified':
             k = len(self.operating_domain) // 2
             kw['operating_domain'] = (list(self.operating_domain[:k]),
@@ -209,13 +215,18 @@ NODE_PARAMS = {p.name: p for p in (
 
 
 def defaults_yaml() -> str:
-    """``config/estimator.yaml``: every parameter with its default, range and description
-    (generated from ``PARAMS``; a test keeps the file equal to this text)."""
+    """
+    Return the text of ``config/estimator.yaml``.
+
+    ``config/estimator.yaml``: every parameter with its default, range and description
+    (generated from ``PARAMS``; a test keeps the file equal to this text).
+    """
     import json
     import textwrap
     lines = ['# Parameters of the dgp_estimator node (dgp_ros/estimator_node.py), generated from',
              '# dgp_ros.online.config.PARAMS; regenerate with',
-             '#   python -c "import dgp_ros.online.config as c; print(c.defaults_yaml(), end=\'\')"'
+             '#   python -c "import dgp_ros.online.config as c; '
+             'print(c.defaults_yaml(), end=\'\')"'
              ' > config/estimator.yaml',
              '# Use: estimator --ros-args --params-file config/estimator.yaml',
              'dgp_estimator:', '  ros__parameters:']
@@ -232,7 +243,8 @@ def defaults_yaml() -> str:
 
 
 def check_model_path(path: str) -> None:
-    """ValueError unless ``path`` may be read and written as the estimator's model file.
+    """
+    Raise ValueError unless ``path`` may be read and written as the estimator's model file.
 
     Allowed: a path ending in ``.npz`` in an existing directory that either does not exist yet or
     is a regular file holding a dgp_ros model (never a directory, device, FIFO, a symlink, or

@@ -877,6 +877,3 @@ class OnlineEstimator:
         if len(p) < _POWER_MIN:
             return None
         return float(np.mean(np.asarray(p) < 0.0))
-
-
-

@@ -1,4 +1,5 @@
-"""Health of the online estimator: counters, recent history, and the status they imply.
+"""
+Health of the online estimator: counters, recent history, and the status they imply.
 
 ``Health`` only records; ``status`` turns the record (plus the estimator's state) into a level
 and a message: each condition a user should act on is a WARN (or an ERROR) with its reason.
@@ -30,15 +31,16 @@ MISSING_WARN_FRACTION = 0.01
 
 
 class GapCounter:
-    """Messages missing from a regular stream, estimated from the gaps between their stamps.
+    """
+    Messages missing from a regular stream, estimated from the gaps between their stamps.
 
     A best-effort subscription drops what does not fit its queue without telling anyone (the
     DDS "message lost" event does not fire for a full history), and a recorder can drop too. The
     nominal period is the median of the last 101 stamp gaps (recomputed every 32 messages, so a
     new publishing rate is learned within about 100 messages and drops up to half of the stream
     do not move it); a gap longer than 1.5 periods counts the ``round(gap / period) - 1``
-    messages that should have filled it. Longer silences (over ``max(1 s, 20 periods)``: the publisher paused, a bag loops)
-    and stamps that go back are not drops.
+    messages that should have filled it. Longer silences (over ``max(1 s, 20 periods)``: the
+    publisher paused, a bag loops) and stamps that go back are not drops.
     """
 
     FACTOR = 1.5
@@ -147,7 +149,8 @@ class Health:
     def counters(self) -> dict:
         lat = np.array(self.latencies) if self.latencies else None
         return {
-            'messages_received': self.messages_received, 'messages_accepted': self.messages_accepted,
+            'messages_received': self.messages_received,
+            'messages_accepted': self.messages_accepted,
             'messages_missing': self.gaps.missing,
             'recent_missing_fraction': round(self.gaps.recent_fraction, 6),
             'samples_added': self.samples_added, 'samples_skipped': self.samples_skipped,
@@ -172,8 +175,12 @@ class Health:
         }
 
     def status(self, state: dict) -> tuple:
-        """(level, message) from the counters and the estimator ``state`` (keys: trained,
-        fill, min_samples, certifies, certified, stale, load_error, refit_running, warnings)."""
+        """
+        Return the health status as (level, message).
+
+        (level, message) from the counters and the estimator ``state`` (keys: trained,
+        fill, min_samples, certifies, certified, stale, load_error, refit_running, warnings).
+        """
         reasons, level = [], OK
         if not state['trained']:
             if state['fill'] < state['min_samples']:
@@ -195,7 +202,8 @@ class Health:
                            'of recent)')
             level = max(level, WARN)
         if self.gaps.recent_fraction > MISSING_WARN_FRACTION:
-            reasons.append(f'messages missing from the stream ({100 * self.gaps.recent_fraction:.1f}'
+            reasons.append('messages missing from the stream '
+                           f'({100 * self.gaps.recent_fraction:.1f}'
                            '% of recent, from stamp gaps): the input queue (queue_depth) '
                            'overflowed, or the publisher or network dropped them')
             level = max(level, WARN)

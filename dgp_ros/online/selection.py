@@ -1,4 +1,5 @@
-"""Which measurements the online estimator learns from, and the buffer that keeps them.
+"""
+Which measurements the online estimator learns from, and the buffer that keeps them.
 
 Every accepted message is answered; only some are learned:
 
@@ -10,9 +11,10 @@ Every accepted message is answered; only some are learned:
   of the buffered velocities (1.4826 x the median absolute deviation, which one wild sample
   cannot inflate), floored so that a constant joint does not make every wiggle novel;
 * isolated outliers: a sample more than ``OUTLIER_Z`` robust scales from the buffer's median, in
-  velocity or in force, is not learned unless ``OUTLIER_RUN`` (10, 0.1 s at the default learning rate) such samples
-  come in a row (then the motion really changed and they are learned). One in-range spike (a velocity of 9999 in a
-  stream of +-2) used to inflate the spread and make every later sample a near-duplicate.
+  velocity or in force, is not learned unless ``OUTLIER_RUN`` (10, 0.1 s at the default learning
+  rate) such samples come in a row (then the motion really changed and they are learned). One
+  in-range spike (a velocity of 9999 in a stream of +-2) used to inflate the spread and make every
+  later sample a near-duplicate.
 """
 from __future__ import annotations
 
@@ -42,22 +44,22 @@ class Buffer:
             self._start = (self._start + 1) % self.capacity
 
     def velocities_unordered(self) -> np.ndarray:
-        """The buffered velocities in storage order (no copy), (size, N)."""
+        """Return the buffered velocities in storage order (no copy), (size, N)."""
         return self._q[:self.size] if self.size < self.capacity else self._q
 
     def rows_unordered(self) -> Tuple[np.ndarray, np.ndarray]:
-        """The buffered (Qd, Tau) in storage order (no copy), (size, N) each."""
+        """Return the buffered (Qd, Tau) in storage order (no copy), (size, N) each."""
         n = self.size
         return (self._q[:n], self._t[:n]) if n < self.capacity else (self._q, self._t)
 
     def arrays(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Copies of (Qd, Tau), (size, N) each, oldest first."""
+        """Return copies of (Qd, Tau), (size, N) each, oldest first."""
         idx = (self._start + np.arange(self.size)) % self.capacity
         return self._q[idx].copy(), self._t[idx].copy()
 
     @classmethod
     def of(cls, capacity: int, Qd: np.ndarray, Tau: np.ndarray) -> 'Buffer':
-        """A buffer holding the newest ``capacity`` rows of (Qd, Tau)."""
+        """Make a buffer holding the newest ``capacity`` rows of ``Qd`` and ``Tau``."""
         b = cls(capacity, Qd.shape[1])
         for q, t in zip(Qd[-capacity:], Tau[-capacity:]):
             b.append(q, t)
@@ -65,7 +67,8 @@ class Buffer:
 
 
 class Selector:
-    """The learning decision for one sample (see the module docstring).
+    """
+    The learning decision for one sample (see the module docstring).
 
     Parameters are read from an ``EstimatorConfig`` at each call, so a reconfiguration applies
     at once.
@@ -85,8 +88,12 @@ class Selector:
         self.additions = 0
 
     def rate_limited(self, config, stamp: float) -> bool:
-        """True when the last sample offered for learning is less than ``min_sample_interval_s``
-        older (a stamp that went back is never limited)."""
+        """
+        Tell whether the sample is rate limited.
+
+        True when the last sample offered for learning is less than ``min_sample_interval_s``
+        older (a stamp that went back is never limited).
+        """
         dt = config.min_sample_interval_s
         last = self.last_added_stamp
         return dt > 0 and last is not None and last <= stamp < last + dt * (1.0 - 1e-9)
@@ -111,13 +118,17 @@ class Selector:
         return st[2:]
 
     def scale(self, config, buf: Buffer) -> np.ndarray:
-        """Per-joint novelty scale (N,), velocity units."""
+        """Return the per-joint novelty scale, (N,), velocity units."""
         if config.selection_scale:
             return np.asarray(config.selection_scale, dtype=float)
         return self._robust_stats(buf)[1]
 
     def outlier(self, config, buf: Buffer, qd: np.ndarray, target: np.ndarray) -> bool:
-        """True for an isolated far outlier (module docstring); never before ``min_samples``."""
+        """
+        Return True for an isolated far outlier as defined in the module docstring.
+
+        Never before ``min_samples``.
+        """
         if buf.size < max(config.min_samples, 10):
             return False
         mq, sq, mt, st = self._robust_stats(buf)
@@ -130,7 +141,7 @@ class Selector:
         return self._far_run < self.OUTLIER_RUN
 
     def novel(self, config, buf: Buffer, qd: np.ndarray) -> bool:
-        """True unless ``qd`` is a near-duplicate of a buffered sample."""
+        """Return True unless ``qd`` is a near-duplicate of a buffered sample."""
         if config.selection != 'novelty' or buf.size == 0 or config.selection_min_distance <= 0:
             return True
         Q = buf.velocities_unordered()

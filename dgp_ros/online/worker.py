@@ -1,4 +1,5 @@
-"""The refit worker: turns a job into a candidate model, off the message path.
+"""
+The refit worker: turns a job into a candidate model, off the message path.
 
 A job is a snapshot (samples, hyper-parameters to start from, configuration) or, to re-prove a
 stale certificate, a copy of the current model. ``run_job`` knows nothing about the estimator
@@ -8,8 +9,8 @@ a proven model). The estimator then replays the samples that arrived meanwhile a
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
+import time
 from typing import Callable, Optional, Tuple
 
 import numpy as np
@@ -21,7 +22,8 @@ __all__ = ['RefitJob', 'RefitResult', 'run_job', 'provable', 'sane']
 
 @dataclass
 class RefitJob:
-    """What to do: ``kind`` 'fit' (Q, T, optimize, hyper) or 'recertify' (model).
+    """
+    What to do: ``kind`` 'fit' (Q, T, optimize, hyper) or 'recertify' (model).
 
     seq : samples the estimator had added when the snapshot was taken (for the catch-up);
     generation : the estimator's reset count (a reset discards the result); stamp : message
@@ -44,8 +46,12 @@ class RefitJob:
 
 @dataclass
 class RefitResult:
-    """The candidate (None when building it failed), whether it may be swapped in, why not,
-    and the wall time spent (s)."""
+    """
+    Outcome of a refit job.
+
+    The candidate (None when building it failed), whether it may be swapped in, why not,
+    and the wall time spent (s).
+    """
 
     job: RefitJob
     model: object
@@ -55,8 +61,12 @@ class RefitResult:
 
 
 def provable(model, passivity: str) -> Tuple[bool, str]:
-    """(ok, reason): may ``model`` serve under ``passivity``? For a certifying mode the
-    certificate must hold; a stale one is re-proven here (this is the only caller that does)."""
+    """
+    Check whether ``model`` may serve under ``passivity``.
+
+    (ok, reason): may ``model`` serve under ``passivity``? For a certifying mode the
+    certificate must hold; a stale one is re-proven here (this is the only caller that does).
+    """
     if not policy_class(passivity).certifies:
         return True, ''
     try:
@@ -75,10 +85,14 @@ BOUND_FACTOR = 10.0
 
 
 def sane(model, Q: np.ndarray, T: np.ndarray, rng=None) -> Tuple[bool, str]:
-    """(ok, reason): are a candidate's estimates finite and bounded by ``BOUND_FACTOR`` x the
+    """
+    Check that a candidate's estimates are finite and bounded.
+
+    (ok, reason): are a candidate's estimates finite and bounded by ``BOUND_FACTOR`` x the
     largest force of its data, on its data and on velocities up to 1.5 x beyond its data box?
     A fit on a short, poorly excited stretch can extrapolate wildly; such a model must not
-    replace one that works."""
+    replace one that works.
+    """
     rng = np.random.default_rng(0) if rng is None else rng
     lo, hi = Q.min(axis=0), Q.max(axis=0)
     c, w = 0.5 * (lo + hi), 0.75 * (hi - lo)
@@ -90,8 +104,8 @@ def sane(model, Q: np.ndarray, T: np.ndarray, rng=None) -> Tuple[bool, str]:
     worst = np.abs(P).max(axis=0) / limit
     if np.any(worst > 1.0):
         j = int(np.argmax(worst))
-        return False, (f'sanity check: estimates up to {worst[j] * BOUND_FACTOR:.0f} x the largest '
-                       f'force of the data on output {j}')
+        return False, (f'sanity check: estimates up to {worst[j] * BOUND_FACTOR:.0f} x the '
+                       f'largest force of the data on output {j}')
     return True, ''
 
 

@@ -1,8 +1,8 @@
 """Fixtures shared by the bag tests: sample data, broken bags, console-script command lines."""
+from pathlib import Path
 import re
 import shutil
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,21 +14,29 @@ SETUP_PY = Path(__file__).resolve().parents[2] / 'setup.py'
 
 
 def console_scripts() -> dict:
-    """``{name: (module, function)}`` as declared in setup.py (not the installed copies, which
-    only change with a reinstall)."""
+    """
+    Return the console scripts declared in setup.py.
+
+    ``{name: (module, function)}`` as declared in setup.py (not the installed copies, which
+    only change with a reinstall).
+    """
     text = SETUP_PY.read_text()
     return {m[1]: (m[2], m[3]) for m in re.finditer(r"'([\w-]+) = ([\w.]+):(\w+)'", text)}
 
 
 @pytest.fixture
 def scripts():
-    """The console scripts declared in setup.py: ``{name: (module, function)}``."""
+    """Return the console scripts declared in setup.py: ``{name: (module, function)}``."""
     return console_scripts()
 
 
 @pytest.fixture
 def cli(scripts):
-    """``cli('dgp-play')`` -> command line running that console script's entry point."""
+    """
+    Return the command line running a console script's entry point.
+
+    ``cli('dgp-play')`` -> command line running that console script's entry point.
+    """
     def command(name):
         mod, fn = scripts[name]
         return [sys.executable, '-c', f'import sys; from {mod} import {fn} as m; sys.exit(m())']
@@ -80,14 +88,17 @@ def bad_bags(tmp_path):
 
 @pytest.fixture
 def make_samples():
-    """The :func:`samples` factory."""
+    """Return the :func:`samples` factory."""
     return samples
 
 
 @pytest.fixture
 def foreign_bag(tmp_path):
-    """A bag with a JointState topic and a topic ``/zen`` of type ``this/msg/Zen``: not a ROS
-    type, and ``this`` is a Python module with an import side effect."""
+    """
+    Write a bag with a JointState topic and a topic ``/zen`` of type ``this/msg/Zen``.
+
+    This is not a ROS type, and ``this`` is a Python module with an import side effect.
+    """
     from rosbags.rosbag2 import Writer
 
     from dgp_ros.bags import JOINT_STATE, storage_plugin, typestore

@@ -1,22 +1,23 @@
-"""dgp_ros.bags.io and .joint_states (rosbags only): reading, writing, JointState streams,
-type checks, errors.
+"""
+dgp_ros.bags.io and .joint_states (rosbags only).
+
+Reading, writing, JointState streams, type checks, errors.
 
 No rclpy here: ``import dgp_ros.bags`` must not load it (checked in a fresh interpreter).
 """
 import ast
-import subprocess
 from contextlib import closing
-import sys
 from pathlib import Path
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from dgp_ros import bags
-from dgp_ros.bags import (BagError, BagWriter, bag_summary, check_message_type, iter_bag,
-                          iter_joint_states, joint_state_topic, message_definition,
-                          normalize_type, open_bag, playable_topics, typestore,
-                          write_joint_state_bag)
+from dgp_ros.bags import (bag_summary, BagError, BagWriter, check_message_type, iter_bag,
+                          iter_joint_states, joint_state_topic, message_definition, normalize_type,
+                          open_bag, playable_topics, typestore, write_joint_state_bag)
 from dgp_ros.messages import JointStateSample
 
 JS = 'sensor_msgs/msg/JointState'
@@ -29,7 +30,7 @@ PKG = Path(bags.__file__).resolve().parents[1]
 def test_import_does_not_load_rclpy(module):
     code = (f'import sys, {module}\n'
             "bad = sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy')\n"
-            "print(bad); sys.exit(1 if bad else 0)")
+            'print(bad); sys.exit(1 if bad else 0)')
     p = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stdout + p.stderr
 
@@ -191,7 +192,8 @@ def test_bag_writer_thread(tmp_path):
     for t in (5, 6, 7):
         w.write('/s', t, raw)
     w.close()
-    assert [(t, bytes(d)) for _, t, d in iter_bag(tmp_path / 'b')] == [(5, raw), (6, raw), (7, raw)]
+    assert [(t, bytes(d)) for _, t, d in iter_bag(tmp_path / 'b')] == \
+        [(5, raw), (6, raw), (7, raw)]
     with pytest.raises(BagError, match='cannot create bag'):
         BagWriter(tmp_path / 'b', 'sqlite3')                  # exists already
     with pytest.raises(BagError, match='unknown storage'):

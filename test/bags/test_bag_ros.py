@@ -1,5 +1,8 @@
-"""dgp_ros.bags.ros and .cli: raw CDR round trip over DDS, bag metadata, both storages, the
-console scripts, clean errors, and no module import driven by a bag's type names.
+"""
+dgp_ros.bags.ros and .cli.
+
+Raw CDR round trip over DDS, bag metadata, both storages, the console scripts, clean errors, and no
+module import driven by a bag's type names.
 
 ROS tests run in their own rclpy.Context (test/conftest.py isolates DDS: random domain,
 localhost only). Message arrival is awaited on conditions signalled by the callbacks, never
@@ -46,7 +49,8 @@ class Collector:
 
 
 class Ros:
-    """A context, an executor spinning in a thread, nodes, and LIFO clean-up.
+    """
+    A context, an executor spinning in a thread, nodes, and LIFO clean-up.
 
     rclpy cannot destroy a subscription while another thread waits on it (the executor's
     thread dies with InvalidHandle): destroy entities inside :meth:`paused` or at clean-up.
@@ -142,9 +146,12 @@ def _js_msg(i, names=('a', 'b', 'c')):
 @pytest.mark.ros
 @pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
 def test_record_then_play_roundtrip_in_process(tmp_path, storage, ros):
-    """Recorder writes exactly the CDR bytes that travelled; the bag is proper rosbag2 (type,
-    msgdef, hash, QoS); Player publishes them back byte-identical (also when looping, with
-    /clock)."""
+    """
+    Recorder writes exactly the CDR bytes that travelled.
+
+    The bag is proper rosbag2 (type, msgdef, hash, QoS); Player publishes them back byte-identical
+    (also when looping, with /clock).
+    """
     from rclpy.qos import QoSProfile
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
@@ -269,14 +276,14 @@ def test_play_bad_bag_exit_2_no_traceback(bad_bags, cli):
 
 # A bag names the type this/msg/Zen. Importing the module `this` prints the Zen of Python: the
 # player must refuse the type from a fixed store, before anything is imported.
-_PLAY_FOREIGN = '''
+_PLAY_FOREIGN = """
 import sys
 from dgp_ros.bags.cli import play_main
 rc = play_main([sys.argv[1], '--rate', '0', '-q'] + sys.argv[2:])
 print('imported this' if 'this' in sys.modules else 'clean', file=sys.stderr)
 sys.exit(rc)
-'''
-_PLAYER_FOREIGN = '''
+"""
+_PLAYER_FOREIGN = """
 import sys
 import rclpy
 from rclpy.node import Node
@@ -295,7 +302,7 @@ node.destroy_node()
 ctx.try_shutdown()
 print('imported this' if 'this' in sys.modules else 'clean', file=sys.stderr)
 sys.exit(rc)
-'''
+"""
 
 
 @pytest.mark.parametrize('entry', ['dgp-play', pytest.param('Player', marks=pytest.mark.ros)])
@@ -328,9 +335,13 @@ def test_record_refuses_existing_output(tmp_path, cli):
 
 @pytest.mark.ros
 def test_record_and_play_clis(tmp_path, ros, cli):
-    """dgp-record (explicit type, mcap) stops cleanly on SIGINT with a valid bag holding all
+    """
+    Record and play a bag with the console scripts.
+
+    dgp-record (explicit type, mcap) stops cleanly on SIGINT with a valid bag holding all
     that it had received; dgp-play publishes it back byte-identical; --max-messages stops by
-    itself."""
+    itself.
+    """
     from rclpy.duration import Duration
     from rclpy.qos import QoSProfile
     from rclpy.serialization import deserialize_message

@@ -21,9 +21,13 @@ def _run(f, t, qd, want=None):
 
 
 def test_estimate_of_a_sine_is_at_the_centre_not_lagged():
-    """qd = (sin, 2 cos)(w t) at 1 Hz: the estimate at t_c matches the derivative at t_c to the
+    """
+    Check that the estimate of a sine is at the window centre, not lagged.
+
+    qd = (sin, 2 cos)(w t) at 1 Hz: the estimate at t_c matches the derivative at t_c to the
     window's curvature bias (relative (w h)^2 / 10: 0.01 and 0.02 rad/s^2 here), while the
-    derivative at t_c - h is off by up to 2 w^2 h = 1.6 rad/s^2."""
+    derivative at t_c - h is off by up to 2 w^2 h = 1.6 rad/s^2.
+    """
     t = _stamps(3000)
     w, h = 2 * np.pi, 0.02
     tt = t - t[0]
@@ -119,8 +123,12 @@ def test_joint_count_is_fixed_by_the_first_push():
 
 
 def test_weighted_kernels_and_other_orders_are_also_centred():
-    """All variants are centred; degree 1 is not exact on jittered stamps (the curvature leaks
-    through the asymmetric window), which is why the default degree is 2."""
+    """
+    All variants are centred.
+
+    Degree 1 is not exact on jittered stamps (the curvature leaks through the asymmetric window),
+    which is why the default degree is 2.
+    """
     t = _stamps(600)
     tt = t - t[0]
     qd = np.sin(3.0 * tt)[:, None]

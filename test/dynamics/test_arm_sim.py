@@ -1,10 +1,14 @@
-"""Simulated arm data: trajectories inside the limits, analytic derivatives, passive friction,
-the effort decomposition, jittered stamps, determinism, and the URDF lookup."""
+"""
+Simulated arm data.
+
+Trajectories inside the limits, analytic derivatives, passive friction, the effort decomposition,
+jittered stamps, determinism, and the URDF lookup.
+"""
 import numpy as np
 import pytest
 
-from dgp_ros.dynamics import (ARM_JOINTS, FRICTION_TABLES, UrdfInverseDynamics,
-                              example_robot_urdf, friction_truth, simulate_arm)
+from dgp_ros.dynamics import (ARM_JOINTS, example_robot_urdf, FRICTION_TABLES, friction_truth,
+                              simulate_arm, UrdfInverseDynamics)
 from dgp_ros.dynamics import arm_sim
 
 pytest.importorskip('pinocchio')
@@ -37,7 +41,11 @@ def test_trajectory_inside_the_limits_and_exciting(panda):
 
 
 def test_derivatives_are_consistent():
-    """qd and qdd are the derivatives of q and qd (central differences, regular stamps)."""
+    """
+    Check that qd and qdd are the derivatives of q and qd.
+
+    Central differences, regular stamps.
+    """
     d = simulate_arm('panda', 2.0, seed=0, jitter_sd_s=0.0)
     t, q, qd, qdd = d['t'], d['q'], d['qd_true'], d['qdd']
     dt = (t[2:] - t[:-2])[:, None]

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from dgp_ros.dynamics import (ARM_JOINTS, AccelFilter, FrictionResidual, UrdfInverseDynamics,
-                              example_robot_urdf, simulate_arm)
+from dgp_ros.dynamics import (AccelFilter, ARM_JOINTS, example_robot_urdf, FrictionResidual,
+                              simulate_arm, UrdfInverseDynamics)
 
 pytest.importorskip('pinocchio')
 
@@ -23,8 +23,12 @@ def _stream(fr, d, every=1):
 
 
 def test_residual_is_zero_without_friction_bias_and_noise(panda_dyn):
-    """Only the filter's error remains: |qdd_hat - qdd| ~ 1e-3 rad/s^2 on this trajectory, times
-    inertias of a few kg m^2; a lag of h instead would leave ~M qddd h ~ 0.1 N m."""
+    """
+    Only the filter's error remains.
+
+    |qdd_hat - qdd| ~ 1e-3 rad/s^2 on this trajectory, times inertias of a few kg m^2; a lag of h
+    instead would leave ~M qddd h ~ 0.1 N m.
+    """
     d = simulate_arm('panda', 3.0, bias=False, noise_sd=0.0, velocity_noise_sd=0.0,
                      friction=False, seed=1, pause_hz=0.0)
     assert np.abs(d['effort']).max() > 20.0

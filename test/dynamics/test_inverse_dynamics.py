@@ -1,5 +1,9 @@
-"""Inverse dynamics front end: URDF (pinocchio) reduction and ordering, continuous joints, the
-plugin spec, the parameter dispatch and the import guards."""
+"""
+Inverse dynamics front end.
+
+URDF (pinocchio) reduction and ordering, continuous joints, the plugin spec, the parameter dispatch
+and the import guards.
+"""
 import os
 import subprocess
 import sys
@@ -8,8 +12,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from dgp_ros.dynamics import (ARM_JOINTS, PINOCCHIO_HINT, PluginInverseDynamics,
-                              UrdfInverseDynamics, example_robot_urdf, make_inverse_dynamics)
+from dgp_ros.dynamics import (ARM_JOINTS, example_robot_urdf, make_inverse_dynamics,
+                              PINOCCHIO_HINT, PluginInverseDynamics, UrdfInverseDynamics)
 
 pin = pytest.importorskip('pinocchio')
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -51,8 +55,12 @@ def test_selected_order_is_the_callers(panda_urdf):
 
 
 def test_mass_matrix_from_the_callable_is_symmetric_positive_definite():
-    """Column i of M(q) = tau(q, 0, e_i) - tau(q, 0, 0): symmetric and positive definite only if
-    positions, accelerations and outputs are all mapped to the right joints (UR5, permuted)."""
+    """
+    Check the joint mapping with the mass matrix.
+
+    Column i of M(q) = tau(q, 0, e_i) - tau(q, 0, 0): symmetric and positive definite only if
+    positions, accelerations and outputs are all mapped to the right joints (UR5, permuted).
+    """
     names = list(ARM_JOINTS['ur5'])[::-1]
     dyn = UrdfInverseDynamics(urdf_file=example_robot_urdf('ur5'), joints=names)
     q = np.random.default_rng(2).uniform(-1, 1, 6)
@@ -146,7 +154,7 @@ def test_make_inverse_dynamics_dispatch(panda_urdf, tmp_path):
 
 @pytest.fixture
 def plugin_module(tmp_path, monkeypatch):
-    (tmp_path / 'dgp_test_dyn_plugin.py').write_text(textwrap.dedent('''
+    (tmp_path / 'dgp_test_dyn_plugin.py').write_text(textwrap.dedent("""
         import numpy as np
         NOT_CALLABLE = 3
         def tau(q, qd, qdd):
@@ -157,7 +165,7 @@ def plugin_module(tmp_path, monkeypatch):
             @staticmethod
             def tau(q, qd, qdd):
                 return qdd
-    '''))
+    """))
     (tmp_path / 'dgp_test_broken_plugin.py').write_text('raise RuntimeError("boom")\n')
     monkeypatch.syspath_prepend(str(tmp_path))
     return 'dgp_test_dyn_plugin'
@@ -189,9 +197,13 @@ def test_plugin_spec_errors_are_clear(plugin_module, spec, reason):
 
 
 def test_package_imports_without_rclpy_and_without_pinocchio():
-    """In a fresh interpreter with pinocchio hidden: the package imports, never loads rclpy, and
-    only "urdf" fails, with the install hint."""
-    code = textwrap.dedent(f'''
+    """
+    Check that the package imports without rclpy and without pinocchio.
+
+    In a fresh interpreter with pinocchio hidden: the package imports, never loads rclpy, and
+    only "urdf" fails, with the install hint.
+    """
+    code = textwrap.dedent(f"""
         import sys
         sys.modules['pinocchio'] = None   # import pinocchio -> ImportError
         import dgp_ros.dynamics as d
@@ -206,7 +218,7 @@ def test_package_imports_without_rclpy_and_without_pinocchio():
             raise AssertionError('no ValueError')
         assert 'rclpy' not in sys.modules, 'rclpy imported'
         print('ok')
-    ''')
+    """)
     run = subprocess.run([sys.executable, '-c', code], cwd=REPO, capture_output=True, text=True,
                          timeout=60)
     assert run.returncode == 0 and run.stdout.strip() == 'ok', run.stderr

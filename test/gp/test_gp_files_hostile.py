@@ -1,6 +1,9 @@
-"""Model files from anywhere (the hardening issue's finding 5, and 8 for energy-injecting data):
-the loader caps what it reads before it inflates or allocates, checks every shape, never trusts
-a certificate, and raises only ValueError with a reason."""
+"""
+Model files from anywhere (the hardening issue's finding 5, and 8 for energy-injecting data).
+
+The loader caps what it reads before it inflates or allocates, checks every shape, never trusts a
+certificate, and raises only ValueError with a reason.
+"""
 import io
 import json
 import resource
@@ -17,7 +20,8 @@ from dgp_ros.gp.persistence import _digest
 def _data(n=40, seed=0, sign=1.0):
     rng = np.random.default_rng(seed)
     Q = rng.uniform(-1, 1, (n, 3))
-    return Q, sign * (Q * [2.0, 1.0, 0.5] + 0.3 * np.tanh(Q / 0.1)) + 0.01 * rng.normal(size=Q.shape)
+    return Q, (sign * (Q * [2.0, 1.0, 0.5] + 0.3 * np.tanh(Q / 0.1))
+               + 0.01 * rng.normal(size=Q.shape))
 
 
 def _arrays(path):

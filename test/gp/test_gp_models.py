@@ -430,9 +430,13 @@ def test_friction_prior_learns_a_bias_once_both_directions_are_seen():
 @pytest.mark.parametrize('kind', ['full', 'diag', 'ard'])
 @pytest.mark.parametrize('passivity', ['none', 'projected', 'certified'])
 def test_the_lean_message_path_equals_the_full_one(kind, passivity):
-    """Without variance (what the node computes when nobody subscribes to the stddev) the
+    """
+    Check that the lean message path equals the full one.
+
+    Without variance (what the node computes when nobody subscribes to the stddev) the
     force and the damping matrix come from one einsum over the element kernels: equal to the
-    per-output loop, for 1..16 queries, also after updates and with switched-off elements."""
+    per-output loop, for 1..16 queries, also after updates and with switched-off elements.
+    """
     if kind == 'ard' and passivity == 'certified':
         pytest.skip('ARD cannot be certified')
     Q, T = _data(60)

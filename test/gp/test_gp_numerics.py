@@ -1,4 +1,5 @@
-"""Reliability: numerical faults in the GP core and through OnlineEstimator (issue 8, items 2, 5).
+"""
+Reliability: numerical faults in the GP core and through OnlineEstimator (issue 8, items 2, 5).
 
 Degenerate data (exactly repeated samples, all-zero velocity, collinear velocities, one sample)
 and ill-conditioned kernels (tiny lengthscale, huge signal variance, tiny noise) via
@@ -66,7 +67,7 @@ def _check_model(m, passivity, Qs):
     assert math.isfinite(m.jitter_) and m.jitter_ >= 0 and _rel_jitter_ok(m)
     if passivity != 'none':
         assert np.all(np.einsum('ij,ij->i', Qs, P) >= -1e-9 * (1 + np.abs(P).sum(1)
-                                                              * np.abs(Qs).sum(1)))
+                                                               * np.abs(Qs).sum(1)))
 
 
 @pytest.mark.parametrize('case', sorted(DEGENERATE))
@@ -84,13 +85,13 @@ def test_core_degenerate_data(case, kind, passivity):
 
 
 ILL = {
-    'tiny_lengthscale': dict(log_ls=-30.0),
-    'huge_variance': dict(log_sf2=60.0),
-    'huge_variance_tiny_noise': dict(log_sf2=60.0, log_sn2=-60.0),
-    'huge_lengthscale_tiny_noise': dict(log_ls=30.0, log_sn2=-60.0),
-    'huge_lengthscale_zero_noise': dict(log_ls=30.0, log_sn2=-700.0),
-    'extreme_variance': dict(log_sf2=700.0),
-    'zero_variance': dict(log_sf2=-np.inf),
+    'tiny_lengthscale': {'log_ls': -30.0},
+    'huge_variance': {'log_sf2': 60.0},
+    'huge_variance_tiny_noise': {'log_sf2': 60.0, 'log_sn2': -60.0},
+    'huge_lengthscale_tiny_noise': {'log_ls': 30.0, 'log_sn2': -60.0},
+    'huge_lengthscale_zero_noise': {'log_ls': 30.0, 'log_sn2': -700.0},
+    'extreme_variance': {'log_sf2': 700.0},
+    'zero_variance': {'log_sf2': -np.inf},
 }
 
 
@@ -126,7 +127,7 @@ def test_core_ill_conditioned_kernels(case, kind, passivity):
         _check_model(m, passivity, _queries())
 
 
-@pytest.mark.parametrize('mod', [dict(log_ls=-400.0), dict(sx=0.0)], ids=['ls_e-400', 'sx0'])
+@pytest.mark.parametrize('mod', [{'log_ls': -400.0}, {'sx': 0.0}], ids=['ls_e-400', 'sx0'])
 def test_core_overflowing_hyperparams_give_clear_error_not_nan(mod):
     Q, T = _data()
     h = _hyper('diag', Q, T, mod)
@@ -143,9 +144,9 @@ def test_core_overflowing_hyperparams_give_clear_error_not_nan(mod):
 
 # ------------------------------------------------------------------ through OnlineEstimator
 def _cfg(**kw):
-    base = dict(model='full', passivity='paper', buffer_size=60, min_samples=10,
-                refit_period_s=0.2, optimize_every_n_refits=0, selection='all',
-                joints=['a', 'b', 'c'], refit_mode='sync')
+    base = {'model': 'full', 'passivity': 'paper', 'buffer_size': 60, 'min_samples': 10,
+            'refit_period_s': 0.2, 'optimize_every_n_refits': 0, 'selection': 'all',
+            'joints': ['a', 'b', 'c'], 'refit_mode': 'sync'}
     base.update(kw)
     return EstimatorConfig(**base)
 
@@ -199,7 +200,7 @@ def test_online_single_sample_model():
 
 
 def _ill_factory(mod):
-    """A model factory whose models fit at fixed, pathological hyper-parameters."""
+    """Make a model factory whose models fit at fixed, pathological hyper-parameters."""
     def make(kind, **kw):
         Q, T = _data()
         kw['hyperparams'] = _hyper(kind, Q, T, mod)
@@ -211,14 +212,18 @@ def _ill_factory(mod):
     return make
 
 
-@pytest.mark.parametrize('mod', [dict(log_ls=-30.0), dict(log_sf2=60.0, log_sn2=-60.0),
-                                 dict(log_ls=-400.0), dict(sx=0.0), dict(log_sn2=-1000.0)],
+@pytest.mark.parametrize('mod', [{'log_ls': -30.0}, {'log_sf2': 60.0, 'log_sn2': -60.0},
+                                 {'log_ls': -400.0}, {'sx': 0.0}, {'log_sn2': -1000.0}],
                          ids=['tiny_ls', 'huge_sf_tiny_noise', 'ls_overflow', 'sx0',
                               'zero_noise'])
 @pytest.mark.parametrize('model,passivity', [('full', 'paper'), ('diag', 'projected')])
 def test_online_ill_conditioned_refits_never_publish_bad_values(mod, model, passivity):
-    """Even when the core produces a broken model, process() returns finite passive estimates
-    (fallback to the prior mean) and counts the problem; nothing raises."""
+    """
+    Check that a broken model never breaks process().
+
+    Even when the core produces a broken model, process() returns finite passive estimates
+    (fallback to the prior mean) and counts the problem; nothing raises.
+    """
     est = OnlineEstimator(_cfg(model=model, passivity=passivity, refit_period_s=0.15),
                           model_factory=_ill_factory(mod))
     Q, T = _data(40, seed=4)

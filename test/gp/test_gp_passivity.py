@@ -1,8 +1,12 @@
-"""Passivity properties: checked numerically on many random points inside and far outside the data."""
+"""
+Passivity properties.
+
+Checked numerically on many random points inside and far outside the data.
+"""
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 from dgp_ros.gp import FullDGP, make_model, project_passive
 from dgp_ros.gp.verify import verify_box
@@ -135,9 +139,12 @@ def test_projection_is_non_expansive_on_passive_truth():
 
 
 def test_declared_operating_domain_keeps_the_correction_where_no_data_was_seen():
-    """Data in one corner of the operating box: with the box declared, the certified model
-    equals the unconstrained one over the whole box (no blend to the prior mean), and stays
-    passive inside and far outside it."""
+    """
+    Data in one corner of the operating box.
+
+    With the box declared, the certified model equals the unconstrained one over the whole box (no
+    blend to the prior mean), and stays passive inside and far outside it.
+    """
     rng = np.random.default_rng(5)
     lo, hi = np.array([-2.0, -2.0]), np.array([2.0, 2.0])
     Q = rng.uniform(-2, 0, (40, 2))                          # one quadrant only

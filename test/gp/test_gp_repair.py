@@ -1,7 +1,10 @@
-"""Certified passivity on data that is not passive everywhere: local repair by cutting planes
-(the least change of the weights at counterexamples) and the element-wise proof in 7-D."""
+"""
+Certified passivity on data that is not passive everywhere.
+
+Local repair by cutting planes (the least change of the weights at counterexamples) and the
+element-wise proof in 7-D.
+"""
 import numpy as np
-import pytest
 
 from dgp_ros.gp import DiagDGP, FullDGP
 from dgp_ros.gp.repair import power_rows, repair
@@ -63,7 +66,8 @@ def test_certified_repairs_locally_and_stays_close_to_projected():
         D = cert.damping_matrix(X[:20000])
         assert np.einsum('ki,kij,kj->k', X[:20000], D, X[:20000]).min() >= 0
     # the repair survives saving and loading (and is re-proven, not trusted)
-    import tempfile, os
+    import os
+    import tempfile
     with tempfile.TemporaryDirectory() as d:
         cert.save(os.path.join(d, 'm.npz'))
         r = FullDGP.load(os.path.join(d, 'm.npz'))

@@ -1,4 +1,5 @@
-"""WindowCholesky: in-place append / drop-oldest against fresh factorizations of the same window.
+"""
+WindowCholesky: in-place append / drop-oldest against fresh factorizations of the same window.
 
 The kernels here are built with plain numpy (independent of dgp_ros.gp.kernels); every check
 compares with scipy's Cholesky of the exact window, or with the window's kernel itself.
@@ -10,7 +11,7 @@ import pytest
 from scipy.linalg import cho_solve, cholesky
 
 from dgp_ros.gp import _chol
-from dgp_ros.gp._chol import WindowCholesky, cholesky_in_place
+from dgp_ros.gp._chol import cholesky_in_place, WindowCholesky
 
 
 def _se(X, ls, sf2=1.0):
@@ -20,8 +21,11 @@ def _se(X, ls, sf2=1.0):
 
 
 def _stream(total, ls, sn2, seed=0, dup=0.0, jitter_dup=0.0):
-    """Inputs, kernel (noise included) and right-hand sides of a sample stream. ``dup``: share
-    of samples that repeat the previous one (up to ``jitter_dup``)."""
+    """
+    Make the inputs, kernel (noise included) and right-hand sides of a sample stream.
+
+    ``dup``: share of samples that repeat the previous one (up to ``jitter_dup``).
+    """
     rng = np.random.default_rng(seed)
     X = rng.uniform(-1, 1, (total, 2))
     if dup:
@@ -45,8 +49,12 @@ def _check_against_fresh(wc, K, r, lo, hi, tol=1e-10):
 
 @pytest.mark.parametrize('window', [2, 3, 17, 150])
 def test_append_drop_cycles_match_a_fresh_factorization(window):
-    """3 x window append + drop cycles (several block moves back to row 0, several dlasr panels
-    for the largest window): factor, z and alpha against scipy's Cholesky of the window."""
+    """
+    Check append and drop cycles against scipy's Cholesky of the window.
+
+    3 x window append + drop cycles (several block moves back to row 0, several dlasr panels
+    for the largest window): factor, z and alpha against scipy's Cholesky of the window.
+    """
     total = window + 3 * window + 5
     _, K, r = _stream(total, [0.4, 0.7], 1e-3, seed=window)
     wc = WindowCholesky(cholesky(K[:window, :window], lower=True), r[:window], limit=window + 1)
@@ -95,12 +103,15 @@ def test_several_drops_in_a_row_and_down_to_one_sample():
 
 
 @pytest.mark.parametrize('sn2, ls, dup, jitter', [(1e-6, [1.5, 2.0], 0.0, 0.0),
-                                                    (1e-6, [0.3, 0.5], 0.3, 0.0),
-                                                    (1e-8, [3.0, 3.0], 0.2, 1e-9)])
+                                                  (1e-6, [0.3, 0.5], 0.3, 0.0),
+                                                  (1e-8, [3.0, 3.0], 0.2, 1e-9)])
 def test_ill_conditioned_windows_keep_a_small_backward_error(sn2, ls, dup, jitter):
-    """Near-singular windows (tiny noise, long lengthscales, exact and near duplicates): after
-    3n cycles L L^T still reproduces the window's kernel and L z its right-hand side to rounding
-    level (a forward comparison would only measure the condition number)."""
+    """
+    Near-singular windows (tiny noise, long lengthscales, exact and near duplicates).
+
+    After 3n cycles L L^T still reproduces the window's kernel and L z its right-hand side to
+    rounding level (a forward comparison would only measure the condition number).
+    """
     n = 120
     _, K, r = _stream(n + 3 * n, ls, sn2, seed=3, dup=dup, jitter_dup=jitter)
     wc = WindowCholesky(cholesky(K[:n, :n], lower=True), r[:n], limit=n + 1)
@@ -154,8 +165,12 @@ def test_fallback_givens_path_gives_the_same_factor(monkeypatch):
 
 
 def test_singular_factor_falls_back_instead_of_failing():
-    """A zero pivot below the dropped sample: p = L22^-1 x does not exist; the Givens fallback
-    still folds the column in (the window's kernel is kept exactly)."""
+    """
+    A zero pivot below the dropped sample.
+
+    p = L22^-1 x does not exist; the Givens fallback still folds the column in (the window's kernel
+    is kept exactly).
+    """
     L = np.array([[1.0, 0, 0], [0.5, 0.0, 0], [0.2, 0.3, 0.8]])
     wc = WindowCholesky(L, np.array([1.0, 0.5, 0.7]), limit=4, z=np.zeros(3))
     wc.drop_first()
@@ -181,9 +196,13 @@ def test_negative_diagonal_input_and_given_z_are_normalized():
 
 
 def test_adopt_takes_the_buffer_without_copy():
-    """workspace -> kernel in its top-left block (upper triangle too) -> cholesky_in_place ->
+    """
+    Check that adopt takes the buffer without a copy.
+
+    workspace -> kernel in its top-left block (upper triangle too) -> cholesky_in_place ->
     adopt: the factor is used where it was computed, and stays correct through the window's
-    append/drop cycles."""
+    append/drop cycles.
+    """
     n = 70
     _, K, r = _stream(n + 100, [0.4, 0.7], 1e-3, seed=7)
     A = WindowCholesky.workspace(n, limit=n + 1)
@@ -246,8 +265,12 @@ def test_panel_width_does_not_change_the_result(monkeypatch):
 
 
 def test_nothing_outside_the_lower_triangle_is_read():
-    """A workspace full of NaN except the kernel's lower triangle: factor, cycles and solves are
-    unaffected (the buffers are np.empty; the kernel's upper triangle stays where it was)."""
+    """
+    A workspace full of NaN except the kernel's lower triangle.
+
+    Factor, cycles and solves are unaffected (the buffers are np.empty; the kernel's upper triangle
+    stays where it was).
+    """
     n = 90
     _, K, r = _stream(n + 200, [0.4, 0.7], 1e-3, seed=11)
     A = WindowCholesky.workspace(n, limit=n + 1)

@@ -1,4 +1,5 @@
-"""Reliability: model files (issue 8, item 6) and no pickle anywhere in the package.
+"""
+Reliability: model files (issue 8, item 6) and no pickle anywhere in the package.
 
 An incompatible version, a tampered, truncated or foreign file gives a clear ValueError from
 ``load_model``; through OnlineEstimator (model_path) such a file is not used, the reason is in
@@ -163,7 +164,8 @@ def test_tampered_header_is_detected(saved, tmp_path, field):
 
 def test_wrong_kind_or_passivity_file_not_used(saved, tmp_path):
     m, p = saved
-    for cfg in (dict(model='diag', passivity='paper'), dict(model='full', passivity='certified')):
+    for cfg in ({'model': 'diag', 'passivity': 'paper'},
+                {'model': 'full', 'passivity': 'certified'}):
         est = OnlineEstimator(EstimatorConfig(model_path=str(p), refit_mode='sync', **cfg))
         assert not est.trained and est.load_error
 

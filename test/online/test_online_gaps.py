@@ -1,9 +1,13 @@
-"""Dropped messages are counted from stamp gaps and reported (the 1 kHz issue: a best-effort
-queue that overflows drops silently, and the DDS lost-message event does not fire for it)."""
+"""
+Dropped messages are counted from stamp gaps and reported.
+
+The 1 kHz issue: a best-effort queue that overflows drops silently, and the DDS lost-message event
+does not fire for it.
+"""
 import numpy as np
 import pytest
 
-from dgp_ros.online import OK, WARN, EstimatorConfig, OnlineEstimator
+from dgp_ros.online import EstimatorConfig, OK, OnlineEstimator, WARN
 from dgp_ros.online.health import GapCounter
 
 NAMES = ['a', 'b']

@@ -1,6 +1,9 @@
-"""Hostile input through the online estimator (the hardening issue's findings 1, 2, 3, 6, 7):
-nothing a peer sends can crash it, freeze its learning, or make it publish a non-finite or
-non-passive value."""
+"""
+Hostile input through the online estimator (the hardening issue's findings 1, 2, 3, 6, 7).
+
+Nothing a peer sends can crash it, freeze its learning, or make it publish a non-finite or
+non-passive value.
+"""
 import numpy as np
 import pytest
 
@@ -15,8 +18,8 @@ def truth(q):
 
 
 def cfg(**kw):
-    base = dict(model='diag', passivity='projected', buffer_size=100, min_samples=20,
-                refit_period_s=2.0, refit_mode='sync', optimize_every_n_refits=0)
+    base = {'model': 'diag', 'passivity': 'projected', 'buffer_size': 100, 'min_samples': 20,
+            'refit_period_s': 2.0, 'refit_mode': 'sync', 'optimize_every_n_refits': 0}
     base.update(kw)
     return EstimatorConfig(**base)
 
@@ -104,9 +107,12 @@ def test_a_first_message_with_30_joints_is_rejected():
 
 
 def test_per_joint_parameters_for_another_joint_count_reject_messages_not_crash():
-    """selection_scale of 2 entries, 3-joint messages, no joints configured: rejected as
-    dimension_mismatch (it raised on every message after the first); reconfigure refuses it
-    once the joint count is known."""
+    """
+    selection_scale of 2 entries, 3-joint messages, no joints configured.
+
+    Rejected as dimension_mismatch (it raised on every message after the first); reconfigure
+    refuses it once the joint count is known.
+    """
     est = OnlineEstimator(cfg(selection_scale=[1.0, 1.0]))
     for k in range(5):
         assert est.process(0.1 * k, NAMES, [0.1 * k, 0.2, 0.3], [1.0, 1.0, 1.0]) is None

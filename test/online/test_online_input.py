@@ -1,4 +1,5 @@
-"""Reliability: malformed measurements (issue 8, items 1 and 5).
+"""
+Reliability: malformed measurements (issue 8, items 1 and 5).
 
 OnlineEstimator.process() is fed >= 10^4 malformed JointState-like messages interleaved with good
 ones. Nothing may raise, every bad message must be rejected and counted by reason in diagnostics(),
@@ -15,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from dgp_ros.online import REJECT_REASONS, EstimatorConfig, OnlineEstimator
+from dgp_ros.online import EstimatorConfig, OnlineEstimator, REJECT_REASONS
 
 JOINTS = ['alpha', 'beta', 'airspeed']
 GRID_SEED = 123
@@ -23,7 +24,7 @@ GRID_SEED = 123
 
 # ----------------------------------------------------------------------------- data
 def true_force(q):
-    """A passive, nonlinear damping force (D(q) PSD everywhere)."""
+    """Return a passive, nonlinear damping force (D(q) PSD everywhere)."""
     q = np.asarray(q, float)
     d = np.array([2.0 + 0.5 * np.sin(3 * q[0]), 1.0 + q[1] ** 2, 0.3 + 0.01 * abs(q[2] - 70.0)])
     return d * q + np.array([0.05 * q[1], -0.05 * q[0], 0.0])
@@ -116,7 +117,7 @@ def bad_message(rng, kind, good_stamp, joints_configured=True):
 
 
 def check_estimate(est, passivity):
-    """The invariant (item 5) on one returned estimate."""
+    """Check the invariant (item 5) on one returned estimate."""
     vals = [est.tau_hat, est.stddev, np.array([est.power]), est.qd]
     if est.D is not None:
         vals.append(np.ravel(est.D))
@@ -128,15 +129,16 @@ def check_estimate(est, passivity):
 
 
 def make_config(**kw):
-    base = dict(model='full', passivity='certified', buffer_size=80, min_samples=25,
-                refit_period_s=1.0, optimize_every_n_refits=0, selection='novelty',
-                joints=list(JOINTS), refit_mode='sync')
+    base = {'model': 'full', 'passivity': 'certified', 'buffer_size': 80, 'min_samples': 25,
+            'refit_period_s': 1.0, 'optimize_every_n_refits': 0, 'selection': 'novelty',
+            'joints': list(JOINTS), 'refit_mode': 'sync'}
     base.update(kw)
     return EstimatorConfig(**base)
 
 
 def run_flood(cfg, n_good, n_bad, seed, kinds):
-    """Interleave n_bad malformed with n_good good messages (good ones first in each slot).
+    """
+    Interleave n_bad malformed with n_good good messages (good ones first in each slot).
 
     Returns (mixed estimator, good-only estimator, expected counts, number of estimates checked).
     """
@@ -193,10 +195,12 @@ RESULTS = {}
 
 
 def test_flood_10k_malformed_full_paper():
-    """>= 10^4 malformed messages among good ones: all rejected and counted, model unchanged.
+    """
+    >= 10^4 malformed messages among good ones: all rejected and counted, model unchanged.
 
     passivity='paper' (refits take ~0.01-1 s here; 'certified' refits take 10-40 s at this buffer
-    size, see the certified case below, which only does the first fit)."""
+    size, see the certified case below, which only does the first fit).
+    """
     cfg = make_config(passivity='paper')
     n_bad = 12000
     mixed, good_only, expected, checked = run_flood(cfg, n_good=260, n_bad=n_bad, seed=1,
@@ -217,16 +221,20 @@ def test_flood_10k_malformed_full_paper():
     assert d['recent_rejected_fraction'] > 0.5 and d['level'] >= 1
     assert 'many rejected samples' in d['message']
     assert_same_model(mixed, good_only, cfg.passivity)
-    RESULTS['flood'] = dict(tried=n_bad + 260, rejected=d['rejected_total'], crashes=0,
-                            estimates_checked=checked)
+    RESULTS['flood'] = {'tried': n_bad + 260, 'rejected': d['rejected_total'], 'crashes': 0,
+                        'estimates_checked': checked}
 
 
 @pytest.mark.parametrize('model,passivity,period', [('diag', 'certified', 0.0),
                                                     ('ard', 'projected', 0.5),
                                                     ('full', 'none', 0.5)])
 def test_flood_other_models_and_message_order_joints(model, passivity, period):
-    """Same property for the other models/passivity modes, with joints learnt from the first
-    message (joints=[]), where a names-less message of the wrong size is 'dimension_mismatch'."""
+    """
+    Same property for the other models/passivity modes.
+
+    With joints learnt from the first message (joints=[]), where a names-less message of the wrong
+    size is 'dimension_mismatch'.
+    """
     cfg = make_config(model=model, passivity=passivity, joints=[], buffer_size=60,
                       min_samples=20, refit_period_s=period)
     kinds = ALL_KINDS + ('dimension_mismatch',)
@@ -264,8 +272,12 @@ def test_bad_input_before_any_good_message():
 
 
 def test_non_monotonic_and_old_stamps_follow_the_documented_policy():
-    """A good payload with a stamp going backwards (bag loop, sim restart, very old message) is
-    kept (documented in online.py): counted in time_jumps_back, refit clock restarts, no crash."""
+    """
+    Check that a stamp going backwards is kept.
+
+    A good payload with a stamp going backwards (bag loop, sim restart, very old message) is
+    kept (documented in online.py): counted in time_jumps_back, refit clock restarts, no crash.
+    """
     rng = np.random.default_rng(7)
     est = OnlineEstimator(make_config(refit_period_s=0.5, passivity='paper'))
     stamps = list(0.01 * np.arange(1, 120))
@@ -399,7 +411,7 @@ def test_node_rejects_and_counts_malformed_joint_states_over_dds():
             qd = np.array(m.velocity)
             assert np.all(np.isfinite(tau)) and np.all(np.isfinite(qd))
             assert float(qd @ tau) >= 0.0
-        RESULTS['node'] = dict(tried=sent_good + sent_bad, rejected=sent_bad)
+        RESULTS['node'] = {'tried': sent_good + sent_bad, 'rejected': sent_bad}
     finally:
         for n in nodes:
             n.destroy_node()

@@ -1,7 +1,9 @@
-"""Reliability: load (issue 8, item 4). The quick soak (bench/soak.py --quick, ~10 s at 1 kHz,
-buffer 1000, async refits) runs in CI: it must finish, report its numbers, and the invariant must
-hold (no non-finite or non-passive estimate). No timing is asserted here: the numbers are the
-bench's to report.
+"""
+Reliability: load (issue 8, item 4).
+
+The quick soak (bench/soak.py --quick, ~10 s at 1 kHz, buffer 1000, async refits) runs in CI: it
+must finish, report its numbers, and the invariant must hold (no non-finite or non-passive
+estimate). No timing is asserted here: the numbers are the bench's to report.
 """
 import json
 import os
@@ -10,7 +12,6 @@ import sys
 import threading
 
 import numpy as np
-import pytest
 
 from dgp_ros.gp import DiagDGP
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
@@ -38,7 +39,7 @@ def test_quick_soak_runs_and_holds_the_invariant(tmp_path):
 
 
 def _slow_factory(event):
-    """A model factory whose fits wait for ``event`` (a refit that is 'slow')."""
+    """Make a model factory whose fits wait for ``event`` (a refit that is 'slow')."""
     class Slow(DiagDGP):
         def fit(self, Q, T, optimize=True):
             event.wait(30)
@@ -53,8 +54,11 @@ def _stream(n, seed=0):
 
 
 def test_async_refit_samples_arriving_meanwhile_are_replayed():
-    """While a (slow) async refit runs, process() never blocks and every estimate stays passive;
-    after it finishes the new model holds the newest buffer_size samples."""
+    """
+    While a (slow) async refit runs, process() never blocks and every estimate stays passive.
+
+    After it finishes the new model holds the newest buffer_size samples.
+    """
     ev = threading.Event()
     est = OnlineEstimator(EstimatorConfig(model='diag', passivity='projected', buffer_size=50,
                                           min_samples=20, refit_period_s=0, selection='all',

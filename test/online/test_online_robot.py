@@ -1,14 +1,16 @@
-"""The robot front end through the online estimator: raw joint torques in, friction learned.
+"""
+The robot front end through the online estimator: raw joint torques in, friction learned.
 
 Simulated Panda (dgp_ros.dynamics.simulate_arm): effort = rigid-body torque + friction + bias +
 noise at 1 kHz with jittered stamps. With ``inverse_dynamics='urdf'`` the estimator learns the
-residual, delayed by the filter's half window; without it, on raw torques, it warns."""
+residual, delayed by the filter's half window; without it, on raw torques, it warns.
+"""
 import numpy as np
 import pytest
 
 from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, friction_truth, simulate_arm
 from dgp_ros.gp import model_class
-from dgp_ros.online import WARN, EstimatorConfig, OnlineEstimator
+from dgp_ros.online import EstimatorConfig, OnlineEstimator, WARN
 
 NAMES = list(ARM_JOINTS['panda'])
 
@@ -19,10 +21,11 @@ def _factory(kind, **kw):
 
 
 def _cfg(**kw):
-    base = dict(model='diag', passivity='projected', prior='friction', bias=True,
-                buffer_size=150, min_samples=60, refit_period_s=0.0, selection='all',
-                refit_mode='sync', inverse_dynamics='urdf', urdf_file=example_robot_urdf('panda'),
-                joints=NAMES)
+    base = {'model': 'diag', 'passivity': 'projected', 'prior': 'friction', 'bias': True,
+            'buffer_size': 150, 'min_samples': 60, 'refit_period_s': 0.0, 'selection': 'all',
+            'refit_mode': 'sync', 'inverse_dynamics': 'urdf',
+            'urdf_file': example_robot_urdf('panda'),
+            'joints': NAMES}
     base.update(kw)
     return EstimatorConfig(**base)
 

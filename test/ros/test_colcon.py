@@ -1,4 +1,8 @@
-"""colcon build of the package in a throw-away workspace: what ``ros2 run dgp_ros estimator`` uses."""
+"""
+colcon build of the package in a throw-away workspace.
+
+What ``ros2 run dgp_ros estimator`` uses.
+"""
 import os
 import shutil
 import signal
@@ -35,7 +39,8 @@ def test_colcon_build_installs_runnable_estimator(tmp_path):
     assert exe.exists()
     assert (ws / 'install' / 'dgp_ros' / 'share' / 'ament_index' / 'resource_index' / 'packages'
             / 'dgp_ros').exists()
-    assert (ws / 'install' / 'dgp_ros' / 'share' / 'dgp_ros' / 'config' / 'estimator.yaml').exists()
+    assert (ws / 'install' / 'dgp_ros' / 'share' / 'dgp_ros' / 'config'
+            / 'estimator.yaml').exists()
     # the executable starts from the install space (its own copy of dgp_ros first on the path)
     site = next((ws / 'install' / 'dgp_ros' / 'lib').glob('python3*/site-packages'))
     env['PYTHONPATH'] = str(site) + os.pathsep + env.get('PYTHONPATH', '')

@@ -1,4 +1,5 @@
-"""Reliability: process faults (issue 8, item 3) with the real console scripts as children.
+"""
+Reliability: process faults (issue 8, item 3) with the real console scripts as children.
 
 One scenario, in order: the estimator is started before the simulator; sim_bridge is killed and
 restarted while the estimator runs (its stamps restart at 0: a documented time jump); the
@@ -7,7 +8,6 @@ estimator with that model_path answers its first measurements exactly with the s
 Every published estimate is checked: finite and qd^T tau_hat >= 0.
 Children always get killed in ``finally``. DDS isolation comes from test/conftest.py.
 """
-import math
 import os
 import signal
 import subprocess
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402,I100
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402

@@ -1,4 +1,5 @@
-"""Ctrl-C and SIGTERM end both nodes cleanly, and the services answer while refits run (issue 17).
+"""
+Ctrl-C and SIGTERM end both nodes cleanly, and the services answer while refits run (issue 17).
 
 Scenario: the console scripts ``estimator`` (``model_path`` in a temporary directory, a small
 buffer, a refit every few tenths of a second of stamp time, each one re-learning the
@@ -20,6 +21,7 @@ In the suite: ``DGP_SHUTDOWN_RUNS`` runs of each signal (default 3).
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass, field
 import os
 import random
 import signal
@@ -27,7 +29,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 if __name__ == '__main__':          # the suite's DDS isolation (own domain id, localhost only)
@@ -37,7 +38,7 @@ if __name__ == '__main__':          # the suite's DDS isolation (own domain id, 
 import pytest  # noqa: E402
 
 rclpy = pytest.importorskip('rclpy')
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402,I100
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -64,10 +65,12 @@ def sim_cmd(ns: str, real_time_factor: float = 0.0) -> List[str]:
 
 
 class Group:
-    """``estimator`` and ``sim_bridge`` in one new process group, stderr to files.
+    """
+    ``estimator`` and ``sim_bridge`` in one new process group, stderr to files.
 
     Each group gets its own namespace: the late /diagnostics of a previous group's estimator
-    (still queued in the observer) must not pass for this one's."""
+    (still queued in the observer) must not pass for this one's.
+    """
 
     _count = 0
 
@@ -276,8 +279,11 @@ def measure_shutdown(runs: int, seed: int = 0, signals=('SIGINT', 'SIGTERM'),
 
 def measure_services(calls: int, workdir: str, real_time_factor: float = 0.0,
                      verbose: bool = False) -> dict:
-    """Alternate ``~/refit`` and ``~/save_model`` calls while the estimator refits; then end the
-    group with SIGINT. Returns counts, latencies and the clean-exit record."""
+    """
+    Alternate ``~/refit`` and ``~/save_model`` calls while the estimator refits.
+
+    Then end the group with SIGINT. Returns counts, latencies and the clean-exit record.
+    """
     obs = Observer()
     group = Group(workdir, real_time_factor)
     obs.watch = group.estimator_name
@@ -376,7 +382,7 @@ def main(argv=None) -> int:
             r = measure_services(a.services, d, a.rtf, verbose=True)
         lat = sorted(r['latencies'])
         print(f"services (rtf {a.rtf}): {r['answered']}/{r['calls']} answered; latency median "
-              f"{lat[len(lat) // 2] * 1e3:.1f} ms, max {lat[-1] * 1e3:.1f} ms; refit: "
+              f'{lat[len(lat) // 2] * 1e3:.1f} ms, max {lat[-1] * 1e3:.1f} ms; refit: '
               f"{r['refit_started']} started, {r['refit_busy']} 'already running'; "
               f"refit_running at call {r['running_at_call']}; save_model ok {r['saved']}; "
               f"exit {r['codes']} {r['problems']}")

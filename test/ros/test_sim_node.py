@@ -9,7 +9,7 @@ import pytest
 from rclpy.exceptions import ParameterException
 
 rclpy = pytest.importorskip('rclpy')
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
+from geometry_msgs.msg import WrenchStamped  # noqa: E402,I100
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
@@ -81,7 +81,8 @@ def test_publishes_well_formed_messages_at_rate(ctx):
         assert got['wrench'] and all(w.header.frame_id == 'wind' for w in got['wrench'])
         w = got['wrench'][-1]
         assert w.wrench.force.z < 0 and w.wrench.force.x < 0       # -lift, -drag
-        assert got['clock'] and _stamp(got['clock'][-1].clock) == pytest.approx(stamps[-1], abs=1e-6)
+        assert got['clock'] and \
+            _stamp(got['clock'][-1].clock) == pytest.approx(stamps[-1], abs=1e-6)
     finally:
         for n in nodes:
             executor.remove_node(n)
@@ -133,7 +134,8 @@ def test_invalid_start_parameters_rejected(ctx, name, value, match):
 
 
 def test_invalid_parameter_change_rejected(ctx):
-    sim = SimBridgeNode(context=ctx, parameter_overrides=[Parameter('real_time_factor', value=0.0)])
+    sim = SimBridgeNode(context=ctx,
+                        parameter_overrides=[Parameter('real_time_factor', value=0.0)])
     try:
         res = sim.set_parameters([Parameter('wind_amplitude', value=[0.0, 40.0, 0.0])])[0]
         assert not res.successful and '+-25' in res.reason

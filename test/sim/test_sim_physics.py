@@ -1,4 +1,8 @@
-"""sim_bridge offline: trim, envelope of the approach, lift balance, sign conventions, body coords."""
+"""
+sim_bridge offline.
+
+Trim, envelope of the approach, lift balance, sign conventions, body coords.
+"""
 import json
 import math
 import subprocess
@@ -13,7 +17,7 @@ from sim_bridge.simulator import LBF_TO_N
 
 @pytest.fixture(scope='session')
 def approach():
-    """The default approach, simulated once per session (angle coordinates)."""
+    """Return the default approach, simulated once per session (angle coordinates)."""
     return simulate_approach(SimConfig())
 
 
@@ -73,7 +77,11 @@ def test_mean_lift_balances_weight(approach):
 
 
 def test_jsbsim_wind_force_signs_and_tau_convention():
-    """JSBSim 1.3.3: fwx = +drag, fwz = +lift (magnitudes), fwy = side force opposing beta."""
+    """
+    Check the JSBSim 1.3.3 wind force signs and the tau convention.
+
+    JSBSim 1.3.3: fwx = +drag, fwz = +lift (magnitudes), fwy = side force opposing beta.
+    """
     sim = ApproachSimulator(SimConfig(wind_amplitude=(0.0, 10.0, 0.0), wind_ramp_s=0.0))
     sim.reset()
     fdm = sim.fdm
@@ -152,13 +160,13 @@ def test_frozen_aero_body_and_zero_speed():
 
 
 @pytest.mark.parametrize('kw, match', [
-    (dict(coordinates='polar'), 'coordinates'),
-    (dict(rate_hz=0.0), 'rate_hz'),
-    (dict(wind_amplitude=(0.0, 30.0, 0.0)), r'\+-25'),
-    (dict(wind_amplitude=(1.0, 2.0)), 'exactly 3'),
-    (dict(wind_frequency=(0.1, -0.2, 0.3)), 'wind_frequency'),
-    (dict(wind_phase=(0.0, float('nan'), 0.0)), 'finite'),
-    (dict(aircraft='B999'), 'not found'),
+    ({'coordinates': 'polar'}, 'coordinates'),
+    ({'rate_hz': 0.0}, 'rate_hz'),
+    ({'wind_amplitude': (0.0, 30.0, 0.0)}, r'\+-25'),
+    ({'wind_amplitude': (1.0, 2.0)}, 'exactly 3'),
+    ({'wind_frequency': (0.1, -0.2, 0.3)}, 'wind_frequency'),
+    ({'wind_phase': (0.0, float('nan'), 0.0)}, 'finite'),
+    ({'aircraft': 'B999'}, 'not found'),
 ])
 def test_config_validation_messages(kw, match):
     with pytest.raises(ValueError, match=match):
