@@ -149,3 +149,38 @@ def test_robot_arms_quick(tmp_path):
     assert len(targets) >= 6
     assert any('WARN' in r[0] and r[1] == 'met' for r in targets)
     assert any('0 negative power' in r[0] and r[1] == 'met' for r in targets)
+
+
+def test_arm_offline_quick(tmp_path):
+    """Hyper-parameter learning against scikit-learn and the passivity modes on the 7-joint arm:
+    the tables exist, every number is finite, projected/certified publish no negative power."""
+    run('arm_offline.py', tmp_path)
+    s = section(tmp_path, 'arm_offline')
+    fits = [r for r in table_rows(s, ()) if r and r[0].startswith(('Full-D-GP (defaults',
+                                                                   'Diag-D-GP (defaults',
+                                                                   'scikit-learn'))]
+    assert len(fits) == 4
+    assert all(math.isfinite(x) and x > 0 for r in fits for x in numbers(r[1]))
+    modes = [r for r in table_rows(s, ()) if len(r) == 14 and r[1] in ('none', 'projected',
+                                                                      'certified')]
+    assert {(r[0], r[1]) for r in modes} >= {('Full-D-GP', 'projected'),
+                                             ('Diag-D-GP', 'certified')}
+    for r in modes:
+        nm = numbers(' '.join(r[2:9]))
+        assert len(nm) == 7 and all(math.isfinite(x) and 0 <= x < 1 for x in nm), r
+        if r[1] != 'none':
+            assert r[13] == '0 / 0', r
+    cert = [r for r in modes if r[1] == 'certified']
+    assert all(r[11].startswith('True') for r in cert), cert
+
+
+def test_arm_live_quick(tmp_path):
+    """dgp-play -> estimator -> listener over DDS: answers arrive, the estimator exits 0 after
+    SIGINT with its model saved, the saved model has no negative power."""
+    run('arm_live.py', tmp_path)
+    s = section(tmp_path, 'arm_live')
+    rows = {r[0]: r[1] for r in table_rows(s, ()) if len(r) == 2}
+    assert numbers(rows['answered (of published)'])[0] > 0
+    assert rows['estimator exit status after SIGINT (model saved)'] == '0'
+    assert rows['negative power in 10^5 random velocities'] == '0'
+    assert 'messages missing (from stamp gaps)' in ' '.join(rows)
