@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""A 7-joint arm offline: hyper-parameter learning against scikit-learn, passivity modes.
+"""
+A 7-joint arm offline: hyper-parameter learning against scikit-learn, passivity modes.
 
 Data: the simulated Panda of ``robot_arms`` (raw torques, 1 kHz, jittered stamps, about 2 %
 non-passive residual samples), through the estimator's own front end (pinocchio inverse
@@ -17,6 +18,7 @@ true friction) is held out.
    certificate, and negative power in random velocities inside the data box and 10x outside.
 
 Usage: bench/arm_offline.py [--quick] [--out DIR]
+
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common as C  # noqa: E402
-import robot_arms  # noqa: E402
+import robot_arms  # noqa: E402,I100
 
 NAME = 'arm_offline'
 TITLE = 'A 7-joint arm offline: hyper-parameter learning and passivity modes'
@@ -67,7 +69,7 @@ def timed(fn):
 
 
 def neg_power(model, lo, hi, k, seed):
-    """Counts of qd . tau_hat below -1e-12 |qd| |tau_hat| inside the box and 10x outside it."""
+    """Count qd . tau_hat below -1e-12 |qd| |tau_hat| inside the box and 10x outside it."""
     rng = np.random.default_rng(seed)
     out = []
     for scale in (1.0, 10.0):
@@ -81,7 +83,7 @@ def neg_power(model, lo, hi, k, seed):
 
 
 def main(argv=None) -> int:
-    a = C.parse_args(__doc__.splitlines()[0], argv)
+    a = C.parse_args(__doc__.strip().splitlines()[0], argv)
     t_start = time.perf_counter()
     from dgp_ros.gp import make_model
     from dgp_ros.online.config import PARAMS
@@ -108,8 +110,9 @@ def main(argv=None) -> int:
                              n_restarts=3 * (m.n_restarts + 1) - 1).fit(Q, T)
             ref_lml = ref.log_marginal_likelihood()
         nm = C.nmse(m.predict(Qh), Fh)
-        hyp_rows.append(dict(kind=kind, t=t, lml=lml, t_warm=tw,
-                             lml_warm=warm.log_marginal_likelihood(), ref_lml=ref_lml, nmse=nm))
+        hyp_rows.append({'kind': kind, 't': t, 'lml': lml, 't_warm': tw,
+                         'lml_warm': warm.log_marginal_likelihood(), 'ref_lml': ref_lml,
+                         'nmse': nm})
     sk = {}
     for restarts in (0, 2):
         C.log(f'{NAME}: scikit-learn, 7 ARD GPs, {restarts} restarts')
@@ -127,8 +130,8 @@ def main(argv=None) -> int:
                                             hyperparams=hp).fit(Q, T, optimize=False))
             cert = m.certificate()
             neg = neg_power(m, lo, hi, k_pass, 1) if mode != 'none' else [None, None]
-            mode_rows[kind, mode] = dict(t=t, cert=cert, nmse=C.nmse(m.predict(Qh), Fh),
-                                         neg=neg)
+            mode_rows[kind, mode] = {'t': t, 'cert': cert, 'nmse': C.nmse(m.predict(Qh), Fh),
+                                     'neg': neg}
 
     # report --------------------------------------------------------------------------------
     wall = time.perf_counter() - t_start
@@ -157,10 +160,10 @@ def main(argv=None) -> int:
     rows = []
     for (kind, mode), r in mode_rows.items():
         c = r['cert']
-        rows.append([C.LABEL[kind], mode] + [C.fmt(x) for x in r['nmse']] +
-                     [C.fmt(float(np.mean(r['nmse']))), C.fmt(r['t']),
-                      f'{c.certified} ({c.method})', C.fmt(c.correction_scale),
-                      '-' if r['neg'][0] is None else f'{r["neg"][0]} / {r["neg"][1]}'])
+        neg = '-' if r['neg'][0] is None else f'{r["neg"][0]} / {r["neg"][1]}'
+        rows.append([C.LABEL[kind], mode] + [C.fmt(x) for x in r['nmse']]
+                    + [C.fmt(float(np.mean(r['nmse']))), C.fmt(r['t']),
+                       f'{c.certified} ({c.method})', C.fmt(c.correction_scale), neg])
     L += [C.md_table(['model', 'passivity'] + [nm.replace('panda_', '') for nm in names] +
                      ['mean', 'fit + proof (s)', 'certified (method)', 'corr. scale',
                       f'neg. power in {k_pass:.0e} (in / 10x out)'], rows), '']

@@ -152,8 +152,12 @@ def test_robot_arms_quick(tmp_path):
 
 
 def test_arm_offline_quick(tmp_path):
-    """Hyper-parameter learning against scikit-learn and the passivity modes on the 7-joint arm:
-    the tables exist, every number is finite, projected/certified publish no negative power."""
+    """
+    Smoke-test arm_offline.
+
+    Hyper-parameter learning against scikit-learn and the passivity modes on the 7-joint arm:
+    the tables exist, every number is finite, projected/certified publish no negative power.
+    """
     run('arm_offline.py', tmp_path)
     s = section(tmp_path, 'arm_offline')
     fits = [r for r in table_rows(s, ()) if r and r[0].startswith(('Full-D-GP (defaults',
@@ -161,8 +165,8 @@ def test_arm_offline_quick(tmp_path):
                                                                    'scikit-learn'))]
     assert len(fits) == 4
     assert all(math.isfinite(x) and x > 0 for r in fits for x in numbers(r[1]))
-    modes = [r for r in table_rows(s, ()) if len(r) == 14 and r[1] in ('none', 'projected',
-                                                                      'certified')]
+    modes = [r for r in table_rows(s, ())
+             if len(r) == 14 and r[1] in ('none', 'projected', 'certified')]
     assert {(r[0], r[1]) for r in modes} >= {('Full-D-GP', 'projected'),
                                              ('Diag-D-GP', 'certified')}
     for r in modes:
@@ -175,8 +179,12 @@ def test_arm_offline_quick(tmp_path):
 
 
 def test_arm_live_quick(tmp_path):
-    """dgp-play -> estimator -> listener over DDS: answers arrive, the estimator exits 0 after
-    SIGINT with its model saved, the saved model has no negative power."""
+    """
+    Smoke-test arm_live: dgp-play -> estimator -> listener over DDS.
+
+    Answers arrive, the estimator exits 0 after SIGINT with its model saved, the saved model
+    has no negative power.
+    """
     run('arm_live.py', tmp_path)
     s = section(tmp_path, 'arm_live')
     rows = {r[0]: r[1] for r in table_rows(s, ()) if len(r) == 2}
