@@ -27,6 +27,21 @@ from .posterior import Hyper, Posterior
 __all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class']
 
 
+#: query rows per chunk times training samples: bounds the (rows, n) kernel temporaries of a
+#: large batch (10^6 queries at n = 500 took 24 GB at once) to about 64 MB each
+CHUNK_ELEMENTS = 8_000_000
+
+
+def _in_chunks(Q: np.ndarray, n: int, fn) -> tuple:
+    """``fn(Q)`` (a tuple of arrays or Nones, rows first) over row chunks of Q, concatenated."""
+    rows = max(256, CHUNK_ELEMENTS // max(n, 1))
+    if Q.shape[0] <= rows:
+        return fn(Q)
+    parts = [fn(Q[i:i + rows]) for i in range(0, Q.shape[0], rows)]
+    return tuple(None if parts[0][j] is None else np.concatenate([pt[j] for pt in parts])
+                 for j in range(len(parts[0])))
+
+
 class _DGP:
     """
     Shared estimator; subclasses only set ``_kind``.
@@ -323,17 +338,22 @@ class _DGP:
         """
         p = self._check_fitted()
         Q = as_matrix(Qs, 'Qs', p.N)
-        tau, var = p.predict(Q, self.policy_.weight(Q), return_var, p.element_kernels(Q))
-        tau, _ = self.policy_.finalize(p, Q, tau, None)
+
+        def part(Qc):
+            tau, var = p.predict(Qc, self.policy_.weight(Qc), return_var, p.element_kernels(Qc))
+            return self.policy_.finalize(p, Qc, tau, None)[0], var
+        tau, var = _in_chunks(Q, p.n, part)
         return (tau, var) if return_var else tau
 
     def damping_matrix(self, Qs) -> np.ndarray:
         """Posterior damping matrix D(q), (k, N, N), with ``predict(q) = D(q) q``."""
         p = self._check_fitted()
         Q = as_matrix(Qs, 'Qs', p.N)
-        D = p.damping(Q, self.policy_.weight(Q))
-        _, D = self.policy_.finalize(p, Q, np.einsum('kij,kj->ki', D, Q), D)
-        return D
+
+        def part(Qc):
+            D = p.damping(Qc, self.policy_.weight(Qc))
+            return (self.policy_.finalize(p, Qc, np.einsum('kij,kj->ki', D, Qc), D)[1],)
+        return _in_chunks(Q, p.n, part)[0]
 
     def predict_with_damping(self, Qs, return_var: bool = True, return_damping: bool = True):
         """
@@ -346,12 +366,15 @@ class _DGP:
         """
         p = self._check_fitted()
         Q = as_matrix(Qs, 'Qs', p.N)
-        Kel = p.element_kernels(Q)
-        w = self.policy_.weight(Q)
-        tau, var = p.predict(Q, w, return_var, Kel)
-        D = p.damping(Q, w, Kel) if p.structure.has_damping and return_damping else None
-        tau, D = self.policy_.finalize(p, Q, tau, D)
-        return tau, var, D
+
+        def part(Qc):
+            Kel = p.element_kernels(Qc)
+            w = self.policy_.weight(Qc)
+            tau, var = p.predict(Qc, w, return_var, Kel)
+            D = p.damping(Qc, w, Kel) if p.structure.has_damping and return_damping else None
+            tau, D = self.policy_.finalize(p, Qc, tau, D)
+            return tau, var, D
+        return _in_chunks(Q, p.n, part)
 
     # ------------------------------------------------------------------ passivity
     def certificate(self) -> Certificate:

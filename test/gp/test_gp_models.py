@@ -455,3 +455,28 @@ def test_the_lean_message_path_equals_the_full_one(kind, passivity):
             _, _, D3 = m.predict_with_damping(Qs, return_var=False, return_damping=False)
             assert D3 is None
         m.update(rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 2))
+
+
+@pytest.mark.parametrize('kind', ['full', 'ard'])
+def test_large_batches_are_predicted_in_chunks_with_the_same_result(kind, monkeypatch):
+    """
+    Predict large batches in chunks, with the result of one pass.
+
+    A million-query passivity check at n = 500 built (k, n) kernels at once (24 GB, OOM).
+    """
+    import dgp_ros.gp.models as models
+    Q, T = _data(60)
+    m = make_model(kind, passivity='projected').fit(Q, T)
+    Qs = np.random.default_rng(9).uniform(-3, 3, (1000, 2))
+    tau, var = m.predict(Qs, return_var=True)
+    D = m.damping_matrix(Qs) if kind != 'ard' else None
+    monkeypatch.setattr(models, 'CHUNK_ELEMENTS', 60 * 300)        # 300 rows per chunk
+    t2, v2 = m.predict(Qs, return_var=True)
+    np.testing.assert_allclose(t2, tau, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(v2, var, rtol=1e-12, atol=1e-12)
+    t3, v3, D3 = m.predict_with_damping(Qs, return_var=False)
+    assert v3 is None and t3.shape == tau.shape
+    np.testing.assert_allclose(t3, tau, rtol=1e-12, atol=1e-12)
+    if kind != 'ard':
+        np.testing.assert_allclose(m.damping_matrix(Qs), D, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(D3, D, rtol=1e-12, atol=1e-12)
