@@ -13,7 +13,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from dgp_ros.gp import DiagDGP, FullDGP, load_model
+from dgp_ros.gp import DiagDGP, FullDGP, load_model, PASSIVITY_MODES
 from dgp_ros.gp.persistence import _digest
 
 
@@ -135,7 +135,7 @@ def test_devices_and_directories_are_refused(tmp_path):
 
 
 @pytest.mark.parametrize('cls', [FullDGP, DiagDGP])
-@pytest.mark.parametrize('mode', ['none', 'paper', 'certified', 'projected'])
+@pytest.mark.parametrize('mode', PASSIVITY_MODES)
 def test_energy_injecting_data_fit_without_lapack_errors(cls, mode):
     Q, T = _data(60, sign=-5.0)
     m = cls(passivity=mode, n_restarts=0).fit(Q, T)
