@@ -577,7 +577,7 @@ class OnlineEstimator:
         seq, rounds = job.seq, 0
         try:
             if ok and job.kind == 'fit':
-                ok, why = self._held_out(model, seq)
+                ok, why, seq = self._held_out(model, seq)
                 if not ok:
                     h.refits_rejected += 1
             while ok:
@@ -643,35 +643,42 @@ class OnlineEstimator:
     #: rejected candidates retried on fresh data before waiting for the next refit period
     MAX_RETRIES = 3
 
-    def _held_out(self, model, seq: int) -> Tuple[bool, str]:
+    def _held_out(self, model, seq: int) -> Tuple[bool, str, int]:
         """
-        Compare the candidate with the current model.
+        Compare the candidate with the current model on the samples it has not seen.
 
-        The comparison is on the samples that arrived while it was fitted (it has not seen them;
-        there are none in sync mode).
+        These are the samples that arrived while it was fitted (none in sync mode). The
+        incumbent answered each of them before learning it; the candidate is given the same
+        chance: it answers each sample, then learns it (the replay the swap needs anyway).
+        Both errors are thus one step ahead. Returns (ok, reason, seq of the last sample the
+        candidate learned).
         """
         with self._lock:
-            newer = [(q, t, b) for (s, q, t, b) in self._pending if s > seq and b is not None]
-        if len(newer) < 10:
-            return True, ''
-        Q = np.array([q for q, _, _ in newer])
-        T = np.array([t for _, t, _ in newer])
-        before = np.array([b for _, _, b in newer])
+            newer = [(s, q, t, b) for (s, q, t, b) in self._pending if s > seq]
+        if sum(b is not None for *_, b in newer) < 10:
+            return True, '', seq
+        e_new, e_old, T = [], [], []
         try:
-            e_new = float(np.mean((model.predict(Q) - T) ** 2))
+            for s, q, t, b in newer:
+                if b is not None:
+                    e_new.append(model.predict(q[None, :])[0] - t)
+                    e_old.append(b - t)
+                    T.append(t)
+                model.update(q, t)
+                seq = s
         except Exception as exc:          # noqa: BLE001 - a broken candidate is caught later
-            return True, f'held-out check skipped: {exc}'
-        # the incumbent learned each of these samples right after answering it: its answers
-        # from before are its held-out error (its error now would be its training error)
-        e_old = float(np.mean((before - T) ** 2))
+            return True, f'held-out check skipped: {exc}', seq
+        T = np.array(T)
+        e_new = float(np.mean(np.square(e_new)))
+        e_old = float(np.mean(np.square(e_old)))
         # a candidate within 1 % of the samples' variance is good enough, however good the
         # incumbent happens to be on them
         floor = float(np.mean(np.var(T, axis=0))) * 1e-2
         if e_new > self.HELD_OUT_FACTOR * e_old + floor:
-            return False, (f'sanity check: error on the {len(newer)} samples that arrived '
+            return False, (f'sanity check: error on the {len(T)} samples that arrived '
                            f'during the fit {e_new / max(e_old, 1e-300):.1f} x the current '
-                           f"model's")
-        return True, ''
+                           f"model's"), seq
+        return True, '', seq
 
     def _swap(self, job: RefitJob, model) -> None:
         """Install the candidate (under the lock)."""
