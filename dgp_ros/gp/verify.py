@@ -211,6 +211,23 @@ def _power_test(lo, hi, Dlo, Dhi, mean_diag):
     return lb / norm
 
 
+def _bisect(qlo, qhi, fl, fh, centre, scale):
+    """
+    Append the two halves of each failed box to the queue; returns the new (qlo, qhi).
+
+    Each box (fl, fh) is halved at its ``centre`` across its widest side in units of
+    ``scale`` (lengthscales: the kernel varies most along that side).
+    """
+    d = np.argmax((fh - fl) / scale, axis=1)
+    r = np.arange(len(fl))
+    mid = centre[r, d]
+    a_hi = fh.copy()
+    a_hi[r, d] = mid
+    b_lo = fl.copy()
+    b_lo[r, d] = mid
+    return np.concatenate([qlo, fl, b_lo]), np.concatenate([qhi, a_hi, fh])
+
+
 def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes: int = 20000,
                batch: int = 512, leaves: Optional[tuple] = None, tol: float = 0.0) -> BoxResult:
     """
@@ -261,16 +278,7 @@ def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes:
             return BoxResult(False, float(Pc[k] / normc[k]), None, examined,
                              time.perf_counter() - t0, witness=centre[k],
                              reason='counterexample: q^T D(q) q < 0 inside the domain')
-        width = (fh - fl) / lmin
-        d = np.argmax(width, axis=1)
-        r = np.arange(len(fl))
-        mid = centre[r, d]
-        a_hi = fh.copy()
-        a_hi[r, d] = mid
-        b_lo = fl.copy()
-        b_lo[r, d] = mid
-        qlo = np.concatenate([qlo, fl, b_lo])
-        qhi = np.concatenate([qhi, a_hi, fh])
+        qlo, qhi = _bisect(qlo, qhi, fl, fh, centre, lmin)
     leaves_out = (np.concatenate(done_lo) if done_lo else np.zeros((0, lo.size)),
                   np.concatenate(done_hi) if done_hi else np.zeros((0, lo.size)))
     if margin == np.inf:
@@ -325,14 +333,6 @@ def verify_diagonal(T: CorrectionTerms, n: int, lo: np.ndarray, hi: np.ndarray, 
             return BoxResult(False, float((dc[k] - beta) / ref), None, examined,
                              time.perf_counter() - t0, witness=centre[k],
                              reason=f'counterexample: D_{n}{n}(q) < {beta:.3g} inside the domain')
-        d = np.argmax((fh - fl) / ls, axis=1)
-        r = np.arange(len(fl))
-        mid = centre[r, d]
-        a_hi = fh.copy()
-        a_hi[r, d] = mid
-        b_lo = fl.copy()
-        b_lo[r, d] = mid
-        qlo = np.concatenate([qlo, fl, b_lo])
-        qhi = np.concatenate([qhi, a_hi, fh])
+        qlo, qhi = _bisect(qlo, qhi, fl, fh, centre, ls)
     return BoxResult(True, 0.0 if margin == np.inf else float(margin), None, examined,
                      time.perf_counter() - t0)
