@@ -42,13 +42,11 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import io
 import json
 import math
 import os
-import random
 import select
 import shutil
 import signal
@@ -102,39 +100,16 @@ def read_section(out: str, name: str) -> Optional[str]:
 
 
 # ----------------------------------------------------------------------------- environment
-_DOMAIN_LOCK = []
-
-
-def claim_domain_id() -> int:
-    """
-    Claim a ROS domain id for this run.
-
-    A random ROS domain id in 1..101 that no test session / other run holds (the lock
-    files of test/conftest.py), held until this process exits.
-    """
-    ids = list(range(1, 102))
-    random.SystemRandom().shuffle(ids)
-    for i in ids:
-        f = open(os.path.join(tempfile.gettempdir(), f'dgp_ros_test_domain_{i}.lock'), 'a')
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            f.close()
-            continue
-        _DOMAIN_LOCK.append(f)
-        return i
-    return ids[0]
-
-
 def isolate_dds() -> int:
-    dom = claim_domain_id()
-    os.environ['ROS_DOMAIN_ID'] = str(dom)
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    os.environ.pop('ROS_LOCALHOST_ONLY', None)
-    os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
-    for v in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
-        os.environ.setdefault(v, '1')
-    return dom
+    """
+    Isolate DDS exactly as a test session does; return the claimed ROS domain id.
+
+    test/conftest.py claims a domain id no other session or run holds (its lock files, held
+    until this process exits) and sets localhost-only discovery and one BLAS thread, on import.
+    """
+    sys.path.insert(0, os.path.join(common.REPO, 'test'))
+    import conftest  # noqa: F401
+    return int(os.environ['ROS_DOMAIN_ID'])
 
 
 def proc_status(key: str, pid='self') -> float:
