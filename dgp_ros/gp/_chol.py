@@ -47,7 +47,7 @@ from scipy.linalg.blas import drot
 import scipy.linalg.cython_lapack as _cython_lapack
 from scipy.linalg.lapack import dpotrf, dtrtrs
 
-__all__ = ['WindowCholesky', 'cholesky_in_place']
+__all__ = ['WindowCholesky', 'FrozenFactor', 'cholesky_in_place']
 
 _F8 = np.dtype(np.float64).itemsize
 _PANEL = 64         # columns of N per dlasr call (rows above the panel are skipped)
@@ -391,3 +391,37 @@ class WindowCholesky:
             drot(buf, buf, a / rr, b / rr, n=m - k + 1, offx=o, offy=o + cap,
                  overwrite_x=1, overwrite_y=1)
             buf[o + cap] = 0.0
+
+
+class FrozenFactor:
+    """
+    A read-only copy of a ``WindowCholesky``'s factor: just ``L`` (n, n), compact to pickle.
+
+    What a predict-only model snapshot needs for the posterior variance (``solve``); it cannot
+    be updated. ``L`` is lower triangular with zeros above the diagonal.
+    """
+
+    def __init__(self, L: np.ndarray):
+        self._L = np.asfortranarray(L, dtype=float)
+        self._n = self._L.shape[0]
+
+    @property
+    def n(self) -> int:
+        return self._n
+
+    @property
+    def L(self) -> np.ndarray:
+        return self._L.copy(order='F')
+
+    def diag(self) -> np.ndarray:
+        return np.diag(self._L).copy()
+
+    def solve(self, B: np.ndarray, trans: bool = False) -> np.ndarray:
+        """``L^-1 B`` (or ``L^-T B`` with trans). B: (n,) or (n, k); returns the same shape."""
+        B = np.asarray(B, dtype=float)
+        vec = B.ndim == 1
+        b = np.array(B.reshape(self._n, -1), dtype=float, order='F', copy=True)
+        x, info = dtrtrs(self._L, b, lower=1, trans=1 if trans else 0, overwrite_b=1)
+        if info != 0:
+            raise LinAlgError(f'triangular solve failed (info={info}): singular factor')
+        return x[:, 0] if vec else x

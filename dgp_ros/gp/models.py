@@ -11,6 +11,7 @@ consistent units; every public method takes and returns model units.
 """
 from __future__ import annotations
 
+import copy
 import inspect
 import time
 from typing import Optional
@@ -375,6 +376,20 @@ class _DGP:
             tau, D = self.policy_.finalize(p, Qc, tau, D)
             return tau, var, D
         return _in_chunks(Q, p.n, part)
+
+    def snapshot(self, variance: bool = True) -> '_DGP':
+        """
+        Return a predict-only copy, compact to send to another process.
+
+        Same parameters, prior, weights, scales and passivity state (the certificate is the
+        one proven here, not re-derived); the Cholesky factors only with ``variance`` (else
+        the variance it predicts is NaN). ``update`` raises on it; ``save`` refactorizes.
+        """
+        p = self._check_fitted()
+        snap = copy.copy(self)
+        snap.posterior_ = p.frozen(variance)
+        snap.policy_ = copy.deepcopy(self.policy_)
+        return snap
 
     # ------------------------------------------------------------------ passivity
     def certificate(self) -> Certificate:

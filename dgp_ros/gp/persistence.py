@@ -57,7 +57,7 @@ def _digest(arrays: dict, header: dict) -> str:
 
 def save_model(model, path) -> None:
     """Write a fitted model to ``path`` atomically (see the module docstring)."""
-    post = model.posterior_
+    post = model.posterior_.ensure_factors()       # a predict-only snapshot: refactorized
     arrays = {'X': post.X, 'R': post.R, 'alpha': post.alpha, 'jit': post.jitter}
     if post.delta is not None:
         arrays['delta'] = post.delta

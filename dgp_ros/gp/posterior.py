@@ -26,7 +26,7 @@ import numpy as np
 from scipy.linalg import cholesky, LinAlgError
 from scipy.linalg.blas import dsymv
 
-from ._chol import cholesky_in_place, WindowCholesky
+from ._chol import cholesky_in_place, FrozenFactor, WindowCholesky
 from .kernels import lower_se_sum, se_ard, Structure
 from .means import PriorMean
 from .verify import CorrectionTerms
@@ -254,6 +254,36 @@ class Posterior:
         """Return an independent copy; the refit worker updates copies off the message path."""
         return copy.deepcopy(self)
 
+    def frozen(self, variance: bool = True) -> 'Posterior':
+        """
+        Return a predict-only copy (a model snapshot for another process).
+
+        It shares the data arrays (``update`` and ``fit`` replace them, never write into
+        them); the factors are compact read-only copies (``FrozenFactor``) when ``variance``,
+        else absent (the variance is then NaN). ``update`` raises on it; saving refactorizes.
+        """
+        p = copy.copy(self)
+        p.factors = [FrozenFactor(f.L) for f in self.factors] if variance and self.factors \
+            else None
+        p._rkhs = None
+        return p
+
+    @property
+    def live(self) -> bool:
+        """Tell whether this posterior can be updated (not a ``frozen`` copy)."""
+        return self.factors is not None and all(isinstance(f, WindowCholesky)
+                                                for f in self.factors)
+
+    def ensure_factors(self) -> 'Posterior':
+        """Return self if live, else a live copy: a frozen one is refactorized (O(n^3))."""
+        if self.live:
+            return self
+        p = copy.copy(self)
+        delta = self.delta
+        p._factorize()
+        p.set_delta(delta)
+        return p
+
     # ------------------------------------------------------------------ data access
     @property
     def Qd(self) -> np.ndarray:
@@ -304,6 +334,8 @@ class Posterior:
         s, hp = self.structure, self.hyper
         sn2 = np.exp(hp.log_sn2)
         ls, sf2 = np.exp(hp.log_ls), np.exp(hp.log_sf2)
+        if not self.live:
+            raise RuntimeError("a model snapshot is predict-only: update the learner's model")
         R_new = (Tau - self.mean(Qd)) / hp.sy
         for q, r in zip(Qd, R_new):
             x = (q / hp.sx)[None, :]
@@ -363,7 +395,9 @@ class Posterior:
         for m in range(s.N):
             Ks = s.output_kernel(m, X, self.X, hp.log_ls, hp.log_sf2, Kel)
             corr[:, m] = Ks @ self.weights[:, m]
-            if return_var:
+            if return_var and self.factors is None:
+                var[:, m] = np.nan
+            elif return_var:
                 v = self.factors[m].solve(Ks.T)
                 var[:, m] = np.maximum(s.output_kdiag(m, X, hp.log_sf2)
                                        - np.einsum('ij,ij->j', v, v), 0.0)
