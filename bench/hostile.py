@@ -268,17 +268,17 @@ def feed(est, T: Tally, stamp, names, v, e, expect=None):
 
     ``expect``: None (either), 'answer', or a collection of acceptable rejection reasons.
     """
-    h = est.health
+    h, lh = est.health, est.learner.health
     rej0 = dict(h.rejected)
     rec0 = h.messages_received
-    ref0 = h.refits_started + h.recertifications
+    ref0 = lh.refits_started + lh.recertifications
     T.sent += 1
     try:
         out = est.process(stamp, names, v, e)
     except Exception as exc:  # noqa: BLE001 - counted: process() must never raise
         T.exceptions[type(exc).__name__] += 1
         return None
-    T.refits += h.refits_started + h.recertifications - ref0
+    T.refits += lh.refits_started + lh.recertifications - ref0
     diff = {k: n - rej0[k] for k, n in h.rejected.items() if n != rej0[k]}
     ok = h.messages_received == rec0 + 1
     if out is None:

@@ -129,7 +129,7 @@ def run_inprocess(args) -> dict:
     wall = time.perf_counter() - t0
     rss1 = rss_mib()
     d = est.diagnostics()
-    durations = list(est.health.refit_durations)
+    durations = est.refit_durations()
     running_at_end = bool(d['refit_running'])
     pending_at_end = d['pending_samples']
     est.close(timeout=args.close_timeout)      # the refit thread is a daemon: do not hang

@@ -365,7 +365,7 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
                 d['rmse_per_mass'] = math.sqrt(mse) / mass
             per[j] = d
     k = 0 if A is None else len(A['t'])
-    durs = list(est.health.refit_durations)
+    durs = est.refit_durations()
     s = {
         'bag': str(bag), 'topic': info['topic'], 'joints': list(names),
         'messages': info['messages'], 'estimates': k,

@@ -21,7 +21,7 @@ __all__ = ['ParamSpec', 'PARAMS', 'EstimatorConfig', 'SELECTION_POLICIES', 'REFI
            'MODEL_SUFFIX']
 
 SELECTION_POLICIES = ('all', 'novelty')
-REFIT_MODES = ('async', 'sync')
+REFIT_MODES = ('process', 'async', 'sync')
 MODEL_SUFFIX = '.npz'
 
 
@@ -57,8 +57,10 @@ PARAMS = {p.name: p for p in (
     ParamSpec('model_path', 'str', '', f'model file ({MODEL_SUFFIX}): loaded at start, saved on '
               'refit, shutdown and ~/save_model; only a dgp_ros model file is overwritten',
               max_len=4096),
-    ParamSpec('refit_mode', 'str', 'async', 'async: refits in a background thread; sync: in the '
-              'message path (replay, tests)', choices=REFIT_MODES),
+    ParamSpec('refit_mode', 'str', 'process', 'where the learner runs: process (a child '
+              'process at lower priority; answers never wait for learning), async (this '
+              'process, refits in a background thread) or sync (in line: replay, tests)',
+              choices=REFIT_MODES),
     ParamSpec('max_abs_velocity', 'float', 1.0e4, '|velocity| above this: message rejected '
               '(out_of_range)', low=1e-9, high=1e6),
     ParamSpec('max_abs_effort', 'float', 1.0e8, '|effort| above this: message rejected '

@@ -12,7 +12,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-__all__ = ['Health', 'GapCounter', 'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
+__all__ = ['Health', 'LearnerHealth', 'LearnerReport', 'GapCounter', 'POWER_WINDOW',
+           'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
 
 # Reasons a message can be rejected for (one counter each).
 REJECT_REASONS = ('empty', 'length_mismatch', 'bad_names', 'duplicate_name', 'missing_joint',
@@ -28,6 +29,8 @@ REJECT_WARN_FRACTION = 0.1
 REFIT_FAIL_ERROR = 3
 #: missing messages (estimated from stamp gaps) above this fraction of the recent stream: WARN
 MISSING_WARN_FRACTION = 0.01
+#: learned samples over which the negative-power warning is decided (and the least it needs)
+POWER_WINDOW, POWER_MIN = 1000, 100
 
 
 class GapCounter:
@@ -82,18 +85,13 @@ class GapCounter:
 
 
 @dataclass
-class Health:
-    """Counters of one estimator run (``OnlineEstimator.reset`` starts a new one)."""
+class LearnerHealth:
+    """Counters of the learner (``Learner.reset`` starts a new one)."""
 
-    rejected: Dict[str, int] = field(default_factory=lambda: {r: 0 for r in REJECT_REASONS})
-    messages_received: int = 0
-    messages_accepted: int = 0
     samples_added: int = 0
     samples_skipped: int = 0          # near-duplicates (novelty selection)
     samples_rate_limited: int = 0
     samples_outliers: int = 0         # isolated far outliers not learned
-    passivity_fallbacks: int = 0      # estimates replaced because their power was negative
-    nonfinite_outputs: int = 0        # estimates replaced because they were not finite
     inverse_dynamics_errors: int = 0  # samples the inverse dynamics could not process
     time_jumps_back: int = 0
     time_jumps_forward: int = 0
@@ -108,18 +106,7 @@ class Health:
     last_refit_wall_time: Optional[float] = None
     last_refit_duration_s: Optional[float] = None
     last_refit_optimized: Optional[bool] = None
-    refit_durations: List[float] = field(default_factory=list)
-    recent_ok: deque = field(default_factory=lambda: deque(maxlen=REJECT_WINDOW))
-    latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
-    gaps: GapCounter = field(default_factory=GapCounter)   # messages missing from the stream
-
-    def reject(self, reason: str) -> None:
-        self.rejected[reason] += 1
-        self.recent_ok.append(False)
-
-    def accept(self) -> None:
-        self.messages_accepted += 1
-        self.recent_ok.append(True)
+    refit_durations: deque = field(default_factory=lambda: deque(maxlen=1000))
 
     def refit_done(self, ok: bool, seconds: float, stamp, optimized: bool, error: str,
                    wall_time: float) -> None:
@@ -137,6 +124,51 @@ class Health:
             self.consecutive_refit_failures += 1
             self.last_refit_error = error
 
+    def counters(self) -> dict:
+        return {
+            'samples_added': self.samples_added, 'samples_skipped': self.samples_skipped,
+            'samples_rate_limited': self.samples_rate_limited,
+            'samples_outliers': self.samples_outliers,
+            'refits_started': self.refits_started, 'refits_ok': self.refits_ok,
+            'refits_failed': self.refits_failed, 'refits_rejected': self.refits_rejected,
+            'consecutive_refit_failures': self.consecutive_refit_failures,
+            'last_refit_error': self.last_refit_error,
+            'last_refit_stamp': self.last_refit_stamp,
+            'last_refit_wall_time': self.last_refit_wall_time,
+            'last_refit_duration_s': self.last_refit_duration_s,
+            'last_refit_optimized': self.last_refit_optimized,
+            'inverse_dynamics_errors': self.inverse_dynamics_errors,
+            'time_jumps_back': self.time_jumps_back, 'time_jumps_forward': self.time_jumps_forward,
+            'recertifications': self.recertifications,
+            'refit_durations': list(self.refit_durations),
+        }
+
+
+@dataclass
+class Health:
+    """Counters of the message path (``OnlineEstimator.reset`` starts a new one)."""
+
+    rejected: Dict[str, int] = field(default_factory=lambda: {r: 0 for r in REJECT_REASONS})
+    messages_received: int = 0
+    messages_accepted: int = 0
+    passivity_fallbacks: int = 0      # estimates replaced because their power was negative
+    nonfinite_outputs: int = 0        # estimates replaced because they were not finite
+    answers_bounded: int = 0          # estimates scaled down to the learned force range
+    samples_dropped: int = 0          # accepted messages the learner's channel had no room for
+    learner_restarts: int = 0         # learner processes that died and were restarted
+    learner_error: str = ''           # why the last learner process died
+    recent_ok: deque = field(default_factory=lambda: deque(maxlen=REJECT_WINDOW))
+    latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
+    gaps: GapCounter = field(default_factory=GapCounter)   # messages missing from the stream
+
+    def reject(self, reason: str) -> None:
+        self.rejected[reason] += 1
+        self.recent_ok.append(False)
+
+    def accept(self) -> None:
+        self.messages_accepted += 1
+        self.recent_ok.append(True)
+
     @property
     def rejected_total(self) -> int:
         return sum(self.rejected.values())
@@ -153,40 +185,30 @@ class Health:
             'messages_accepted': self.messages_accepted,
             'messages_missing': self.gaps.missing,
             'recent_missing_fraction': round(self.gaps.recent_fraction, 6),
-            'samples_added': self.samples_added, 'samples_skipped': self.samples_skipped,
-            'samples_rate_limited': self.samples_rate_limited,
-            'samples_outliers': self.samples_outliers,
             'rejected': dict(self.rejected), 'rejected_total': self.rejected_total,
             'recent_rejected_fraction': self.recent_rejected_fraction,
-            'refits_started': self.refits_started, 'refits_ok': self.refits_ok,
-            'refits_failed': self.refits_failed, 'refits_rejected': self.refits_rejected,
-            'last_refit_error': self.last_refit_error,
-            'last_refit_stamp': self.last_refit_stamp,
-            'last_refit_wall_time': self.last_refit_wall_time,
-            'last_refit_duration_s': self.last_refit_duration_s,
-            'last_refit_optimized': self.last_refit_optimized,
             'passivity_fallbacks': self.passivity_fallbacks,
             'nonfinite_outputs': self.nonfinite_outputs,
-            'inverse_dynamics_errors': self.inverse_dynamics_errors,
-            'time_jumps_back': self.time_jumps_back, 'time_jumps_forward': self.time_jumps_forward,
-            'recertifications': self.recertifications,
+            'answers_bounded': self.answers_bounded,
+            'samples_dropped': self.samples_dropped,
+            'learner_restarts': self.learner_restarts,
             'latency_median_s': float(np.median(lat)) if lat is not None else float('nan'),
             'latency_p99_s': float(np.percentile(lat, 99)) if lat is not None else float('nan'),
         }
 
-    def status(self, state: dict) -> tuple:
+    def status(self, learner: dict, state: dict) -> tuple:
         """
         Return the health status as (level, message).
 
-        (level, message) from the counters and the estimator ``state`` (keys: trained,
-        fill, min_samples, certifies, certified, stale, load_error, refit_running, warnings).
+        ``learner``: the learner's counters (``LearnerHealth.counters``); ``state`` (keys:
+        trained, fill, min_samples, certifies, certified, stale, load_error, warnings).
         """
         reasons, level = [], OK
         if not state['trained']:
             if state['fill'] < state['min_samples']:
                 reasons.append(f'not yet trained ({state["fill"]}/{state["min_samples"]} '
                                'samples)')
-            elif self.refits_failed and state['certifies']:
+            elif learner.get('refits_failed') and state['certifies']:
                 reasons.append('not certified: no certified model yet, publishing prior mean')
             else:
                 reasons.append('not yet trained (first fit running)')
@@ -207,14 +229,14 @@ class Health:
                            '% of recent, from stamp gaps): the input queue (queue_depth) '
                            'overflowed, or the publisher or network dropped them')
             level = max(level, WARN)
-        if self.consecutive_refit_failures and 'sanity check' in self.last_refit_error:
-            reasons.append(f'model rejected ({self.last_refit_error}); the previous one serves')
+        failures = learner.get('consecutive_refit_failures', 0)
+        error = learner.get('last_refit_error', '')
+        if failures and 'sanity check' in error:
+            reasons.append(f'model rejected ({error}); the previous one serves')
             level = max(level, WARN)
-        elif self.consecutive_refit_failures:
-            reasons.append(f'refit failing ({self.consecutive_refit_failures} in a row: '
-                           f'{self.last_refit_error})')
-            level = max(level, ERROR if self.consecutive_refit_failures >= REFIT_FAIL_ERROR
-                        else WARN)
+        elif failures:
+            reasons.append(f'refit failing ({failures} in a row: {error})')
+            level = max(level, ERROR if failures >= REFIT_FAIL_ERROR else WARN)
         if state['load_error']:
             reasons.append('model file not used')
             level = max(level, WARN)
@@ -222,3 +244,78 @@ class Health:
             reasons.append(w)
             level = max(level, WARN)
         return level, ('; '.join(reasons) if reasons else 'ok')
+
+
+class LearnerReport:
+    """Mixin of the learner: its part of the diagnostics (the learner provides the state)."""
+
+    #: stamp time without a learned sample (while moving) after which learning is said to stall
+    STALL_WARN_S = 30.0
+
+    def status(self) -> dict:
+        """Return the learner's part of the diagnostics (counters, certificate, warnings)."""
+        with self._lock:
+            cert = self._model.certificate() if self._model is not None else None
+            d = {
+                'trained': self._model is not None,
+                'certified': bool(cert.certified) if cert is not None else False,
+                'certificate_stale': bool(cert.stale) if cert is not None else False,
+                'margin': float(cert.margin) if cert is not None else float('nan'),
+                'method': str(cert.method) if cert is not None else '',
+                'domain': str(cert.domain) if cert is not None else '',
+                'buffer_fill': 0 if self._buf is None else self._buf.size,
+                'refit_running': self.refit_running(),
+                'load_error': self.load_error, 'hyper_samples': self._opt_n,
+                'pending_samples': len(self._pending),
+                'negative_power_fraction': self.negative_power_fraction(),
+                'residual_delay_s': self._front.delay_s,
+                'accel_filter_restarts': self._front.restarts,
+                'accel_filter_dropped': self._front.dropped,
+                'bias': (None if self._model is None or not self.config.bias else
+                         [round(float(b), 6) for b in self._model.bias_]),
+                'version': self._version,
+                'warnings': self._warnings(),
+            }
+            d.update(self.health.counters())
+            return d
+
+    def _warnings(self) -> List[str]:
+        """Conditions on the data the user should act on (WARN with the reason)."""
+        out = []
+        if self._stalled():
+            out.append(f'learning stalled: no sample learned for '
+                       f'{self._last_t - self._last_added_t:.0f} s while the velocities '
+                       f'moved (check selection_min_distance / selection_scale)')
+        frac = self.negative_power_fraction()
+        if frac is not None and frac > self.config.negative_power_warn_fraction:
+            what = 'effort - inverse dynamics' if self._inverse is not None else 'effort'
+            hint = ('check the URDF, the joint order and the torque sign convention'
+                    if self._inverse is not None else
+                    'raw joint torques hold gravity and inertia: set inverse_dynamics (urdf and '
+                    'robot_description, or a python plugin) so the rigid-body torque is '
+                    'subtracted')
+            out.append(f'data are not damping: qd . ({what}) < 0 on {100 * frac:.0f}% of the '
+                       f'recent samples (friction dissipates); {hint}')
+        return out
+
+    def _stalled(self) -> bool:
+        """
+        Tell whether learning is stalled.
+
+        No sample learned for ``STALL_WARN_S`` of learning time although the recent
+        candidates spread over many novelty distances (not a hovering state).
+        """
+        if self._last_added_t is None or self._last_t is None or self._buf is None or \
+                self._last_t - self._last_added_t < self.STALL_WARN_S or \
+                len(self._recent_q) < 10:
+            return False
+        Q = np.array(self._recent_q)
+        spread = (Q.max(axis=0) - Q.min(axis=0)) / self._selector.scale(self.config, self._buf)
+        return bool(spread.max() > 10.0 * max(self.config.selection_min_distance, 1e-3))
+
+    def negative_power_fraction(self) -> Optional[float]:
+        """Fraction of the recent learned samples with ``qd . target < 0`` (None: too few)."""
+        p = self._learned_power
+        if len(p) < POWER_MIN:
+            return None
+        return float(np.mean(np.asarray(p) < 0.0))

@@ -1,0 +1,157 @@
+"""
+The output gate: every answer of the message path is computed and checked here (no rclpy).
+
+:func:`answer` predicts at k velocities from a learner snapshot (one vectorized call) and checks
+each answer: non-finite or non-passive estimates (beyond rounding) are replaced by the passive
+prior, and an estimate larger than what was learned is scaled down to it (``BOUND_FACTOR`` x the
+largest learned force per joint, or the prior's own force where that is larger: a uniform
+scaling keeps ``qd . tau_hat >= 0``); each case is counted in the message path's ``Health``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Callable, List, Optional
+
+import numpy as np
+
+from dgp_ros.gp import passive_tolerance
+
+from .snapshot import Snapshot
+
+__all__ = ['answer', 'Estimate', 'BOUND_FACTOR']
+
+#: answers are bounded by this factor times the largest force learned per joint
+BOUND_FACTOR = 1.5
+
+
+@dataclass
+class Estimate:
+    """
+    The estimate answering one measurement (model units; N joints).
+
+    qd, tau : (N,) the measured velocity and effort; tau_hat : (N,) the damping force estimate at
+    qd; stddev : (N,) its posterior standard deviation (NaN when not computed); D : (N, N)
+    damping matrix (None for the ARD baseline or when not computed); power : ``qd^T tau_hat``;
+    measured_power : ``qd^T tau``; source : 'model' | 'prior' | 'fallback'; added : the sample
+    was offered for learning (with inverse dynamics its residual is learned once the filter's
+    window is complete); processing_time_s : wall time spent; residuals : friction residual
+    samples (``dynamics.ResidualSample``) the learner completed since the last answer (each
+    trails its message by the filter's half window), which is what the model learns.
+    """
+
+    stamp_s: float
+    names: List[str]
+    qd: np.ndarray
+    tau: np.ndarray
+    tau_hat: np.ndarray
+    stddev: np.ndarray
+    D: Optional[np.ndarray]
+    power: float
+    measured_power: float
+    source: str
+    added: bool
+    processing_time_s: float
+    residuals: list = dataclasses.field(default_factory=list)
+
+
+def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damping: bool,
+           passivity: str, health, note_error: Callable[[str], None]):
+    """
+    Answer velocities Q (k, N) from ``snap`` through the gate (module docstring).
+
+    Returns (tau_hat (k, N), std (k, N), D (k, N, N) or None, source (k,) of 'model' |
+    'prior' | 'fallback'); ``std`` is NaN where not wanted, ``D`` None where not wanted.
+    ``health`` counts what the gate did; ``note_error`` records a failed prediction.
+    """
+    k, N = Q.shape
+    source = np.array(['prior'] * k, dtype=object)
+    tau = std = D = None
+    if snap is not None and snap.model is not None:
+        try:
+            tau, var, D = snap.model.predict_with_damping(Q, want_stddev, want_damping)
+            std = (np.sqrt(np.maximum(var, 0.0)) if var is not None
+                   else np.full((k, N), np.nan))
+            source[:] = 'model'
+        except Exception as exc:        # noqa: BLE001 - the answer falls back to the prior
+            health.nonfinite_outputs += k
+            note_error(f'predict failed: {type(exc).__name__}: {exc}')
+            source[:] = 'fallback'
+            tau = None
+    if tau is None:
+        tau, std, D = _prior(snap, Q, want_damping)
+    return _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, health)
+
+
+def _prior(snap: Optional[Snapshot], Q: np.ndarray, want_damping: bool):
+    """(tau, std, D) of the passive prior ``diag(m_d(qd)) qd`` (zero before any snapshot)."""
+    k, N = Q.shape
+    if snap is None or snap.prior is None:
+        d = np.zeros((k, N))
+        std = np.zeros((k, N))
+    else:
+        d = np.asarray(snap.prior.diag(Q), float)
+        std = np.broadcast_to(snap.prior_std, (k, N)).copy()
+    tau = d * Q
+    bad = ~np.all(np.isfinite(tau), axis=1)
+    if np.any(bad):
+        d[bad], tau[bad] = 0.0, 0.0
+    D = np.zeros((k, N, N))
+    D[:, np.arange(N), np.arange(N)] = d
+    return tau, std, D if want_damping else None
+
+
+def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, health):
+    """
+    Check the answers (the one place this is done); see the module docstring.
+
+    Returns (tau_hat, std, D, source) row by row: finite, passive beyond rounding (unless
+    passivity is 'none') and bounded by what was learned.
+    """
+    h = health
+    finite = np.all(np.isfinite(tau), axis=1)
+    if want_stddev:
+        finite &= np.all(np.isfinite(std), axis=1)
+    if D is not None:
+        finite &= np.all(np.isfinite(D), axis=(1, 2))
+    bad = ~finite
+    h.nonfinite_outputs += int(bad.sum())
+    if passivity != 'none':
+        safe = np.where(finite[:, None], tau, 0.0)
+        power = np.einsum('ij,ij->i', Q, safe)
+        negative = finite & (power < -passive_tolerance(Q, safe))
+        h.passivity_fallbacks += int(negative.sum())
+        bad |= negative
+    if np.any(bad):
+        pt, ps, pD = _prior(snap, Q[bad], want_damping)
+        tau, std = tau.copy(), std.copy()
+        tau[bad], std[bad] = pt, np.where(np.isfinite(ps), ps, 0.0)
+        if D is not None:
+            D = D.copy()
+            D[bad] = pD if pD is not None else 0.0
+        source = source.copy()
+        source[bad] = 'fallback'
+    if snap is not None and snap.model is not None:
+        tau, D = _bound(snap, Q, tau, D, health)
+    return tau, std, D, source
+
+
+def _bound(snap: Snapshot, Q, tau, D, health):
+    """Scale down answers beyond ``BOUND_FACTOR`` x the learned force (or the prior's)."""
+    limit = BOUND_FACTOR * np.maximum(snap.force_bound, 1e-12)
+    if snap.prior is not None:
+        with np.errstate(invalid='ignore'):
+            prior = np.abs(np.asarray(snap.prior.diag(Q), float) * Q)
+        limit = np.maximum(limit, np.where(np.isfinite(prior), prior, 0.0))
+    over = np.abs(tau) / limit
+    worst = over.max(axis=1)
+    big = worst > 1.0
+    if np.any(big):
+        health.answers_bounded += int(big.sum())
+        s = 1.0 / worst[big]
+        tau = tau.copy()
+        tau[big] *= s[:, None]
+        if D is not None:
+            D = D.copy()
+            D[big] *= s[:, None, None]
+    return tau, D

@@ -1,0 +1,203 @@
+"""
+The learner process's loop (no rclpy): samples in from the ring, snapshots and replies out.
+
+Run by :func:`dgp_ros.online.process._child_main` in the child. One thread takes every sample
+waiting in the ring, feeds them to the :class:`~dgp_ros.online.learner.Learner` (whose refit and
+re-proof jobs run in a thread of their own beside it), answers commands, and sends a snapshot
+whenever the learner's version changed (at most every ``SNAPSHOT_PERIOD_S``), its status, and the
+residual samples it completed. It stops on a 'stop' command or when the node's pipe closes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+import traceback
+
+import numpy as np
+
+from .config import EstimatorConfig
+from .learner import Learner
+from .ring import SampleRing
+
+__all__ = ['LearnerLoop']
+
+
+class LearnerLoop:
+    """One learner process's work (module docstring); arguments as ``process._child_main``."""
+
+    IDLE_WAIT_S = 0.002
+    #: learning time per round (s): commands are read and snapshots sent between rounds
+    ROUND_S = 0.01
+    #: longest catch-up before a command that must see the samples sent before it (s)
+    DRAIN_S = 0.05
+
+    def __init__(self, cfg: dict, cmd, out, lock, ring_info, init_model, variance: bool,
+                 residuals: bool):
+        from .process import LearnerProcess
+        self.P = LearnerProcess
+        self.cmd, self.out, self.lock = cmd, out, lock
+        self.variance, self.residuals = variance, residuals
+        self.ring = None
+        self.sent_version = -1
+        self.waits = []                 # (id, wall deadline) of 'wait' commands
+        self.sent_at = self.status_at = 0.0
+        self.row_s = 1e-4               # learning seconds per sample (moving average)
+        self.period = self.P.SNAPSHOT_PERIOD_S
+        try:
+            config = dataclasses.replace(EstimatorConfig.from_dict(cfg), refit_mode='async')
+            self.learner = Learner(config)
+            if init_model is not None:          # newer than the file of the last refit
+                self.learner.adopt(init_model, 'the last snapshot')
+        except Exception as exc:        # noqa: BLE001 - the node reports it and exits 2
+            self.learner = None
+            self.out.send(('error', f'{exc}'))
+            return
+        if ring_info is not None:
+            self._attach(*ring_info)
+        L = self.learner
+        snap = L.snapshot(variance=variance, frozen=True)
+        self.sent_version = L.version if snap is not None else -1
+        self.out.send(('ready', {'joint_names': L.joint_names(),
+                                 'needs_position': L.needs_position,
+                                 'load_error': L.load_error, 'snapshot': snap,
+                                 'status': L.status()}))
+
+    def _attach(self, name, width, capacity) -> None:
+        self.ring = SampleRing(width, capacity, self.lock, name=name)
+
+    # ------------------------------------------------------------------ loop
+    def run(self) -> None:
+        if self.learner is None:
+            return
+        try:
+            while True:
+                if not self._commands():
+                    break
+                busy = self._samples()
+                if not busy:
+                    self.learner.poll()
+                self._publish()
+                if not busy:
+                    self.cmd.poll(self.IDLE_WAIT_S)
+        except (EOFError, OSError, BrokenPipeError):
+            pass                          # the node is gone
+        finally:
+            if self.ring is not None:
+                self.ring.close()
+
+    def _samples(self) -> bool:
+        """Learn the samples waiting, for about ``ROUND_S``; True if there were any."""
+        if self.ring is None:
+            return False
+        rows = self.ring.take(max(1, int(self.ROUND_S / self.row_s)))
+        if not rows.shape[0]:
+            return False
+        t0 = time.perf_counter()
+        N = (rows.shape[1] - 1) // 3
+        done = []
+        for r in rows:
+            q = r[1 + 2 * N:]
+            _, res = self.learner.learn(float(r[0]), r[1:1 + N].copy(),
+                                        r[1 + N:1 + 2 * N].copy(),
+                                        None if np.isnan(q[0]) else q.copy())
+            done.extend(res)
+        # the learning cost per row (a moving average) sizes the next round
+        self.row_s = 0.8 * self.row_s + 0.2 * (time.perf_counter() - t0) / rows.shape[0]
+        if done and self.residuals:
+            self.out.send(('residuals', done))
+        return True
+
+    def _drain(self) -> None:
+        """Learn what was sent before a command (bounded by ``DRAIN_S``)."""
+        end = time.monotonic() + self.DRAIN_S
+        while self._samples() and time.monotonic() < end:
+            pass
+
+    def _publish(self) -> None:
+        now = time.monotonic()
+        L = self.learner
+        if L.version != self.sent_version and now - self.sent_at >= self.period:
+            snap = L.snapshot(variance=self.variance, frozen=True)
+            if snap is not None:
+                self.out.send(('snapshot', snap))
+                self.sent_version, self.sent_at = snap.version, now
+                n, N = (0, 0) if snap.model is None else snap.model.posterior_.X.shape
+                size = 8.0 * n * N * (4 + (n if self.variance else 0))
+                self.period = max(self.P.SNAPSHOT_PERIOD_S, size / self.P.SNAPSHOT_BYTES_PER_S)
+        if self.waits and not L.refit_running() and L.version == self.sent_version:
+            self.out.send(('status', L.status()))        # arrives before the reply
+            self.status_at = now
+            for i, _ in self.waits:
+                self.out.send(('reply', i, True, self.sent_version))
+            self.waits = []
+        elif self.waits:
+            keep = []
+            for i, deadline in self.waits:
+                if time.time() > deadline:
+                    self.out.send(('reply', i, False, 'timeout'))
+                else:
+                    keep.append((i, deadline))
+            self.waits = keep
+        if now - self.status_at >= self.P.STATUS_PERIOD_S:
+            self.out.send(('status', L.status()))
+            self.status_at = now
+
+    # ------------------------------------------------------------------ commands
+    def _commands(self) -> bool:
+        """Handle every command waiting; False on 'stop' (after a bounded wait for a job)."""
+        while self.cmd.poll():
+            msg = self.cmd.recv()
+            kind = msg[0]
+            if kind == 'stop':
+                self.learner.close(msg[1] if len(msg) > 1 else 5.0)
+                return False
+            if kind == 'ring':
+                self._attach(*msg[1:])
+            elif kind == 'variance':
+                self.variance = bool(msg[1])
+                self.sent_version = -1           # the next snapshot carries what is wanted
+            elif kind == 'residuals':
+                self.residuals = bool(msg[1])
+            elif kind == 'wait':
+                self._drain()
+                self.waits.append((msg[1], msg[2]))
+                self.sent_at = 0.0               # publish the newest at once
+            else:
+                if kind in ('refit', 'save', 'samples'):
+                    self._drain()                # they act on what was sent before them
+                self._reply(kind, msg[1], msg[2:])
+        return True
+
+    def _reply(self, kind: str, i: int, args: tuple) -> None:
+        L = self.learner
+        try:
+            if kind == 'refit':
+                ok, what = L.request_refit()
+            elif kind == 'save':
+                ok, what = True, L.save(args[0])
+            elif kind == 'reset':
+                L.reset()
+                ok, what = True, 'reset'
+            elif kind == 'check':
+                L.check_reconfigure(self._config(args[0]))
+                ok, what = True, ''
+            elif kind == 'reconfigure':
+                ok, what = True, L.reconfigure(self._config(args[0]))
+            elif kind == 'samples':
+                ok, what = True, L.samples()
+            else:
+                ok, what = False, f'unknown command {kind!r}'
+        except (ValueError, RuntimeError, OSError) as exc:
+            ok, what = False, f'{type(exc).__name__}: {exc}'
+        except Exception as exc:            # noqa: BLE001 - report, never die on a command
+            ok, what = False, f'{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}'
+        # the state the command left arrives before its reply
+        if L.version != self.sent_version:
+            self.out.send(('snapshot', L.snapshot(variance=self.variance, frozen=True)))
+            self.sent_version, self.sent_at = L.version, time.monotonic()
+        self.out.send(('status', L.status()))
+        self.out.send(('reply', i, ok, what))
+
+    @staticmethod
+    def _config(d: dict) -> EstimatorConfig:
+        return dataclasses.replace(EstimatorConfig.from_dict(d), refit_mode='async')

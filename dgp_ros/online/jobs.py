@@ -1,0 +1,250 @@
+"""
+Refit and re-proof jobs of the learner: start, integrate, swap (no rclpy).
+
+``JobRunner`` is the job half of :class:`~dgp_ros.online.learner.Learner`: it starts a job
+(``worker.run_job``: in a background thread with ``refit_mode='async'``, in line with
+``'sync'``), and integrates its result: the candidate is compared one step ahead with the
+incumbent on the samples that arrived during its fit (``_held_out``), those samples are replayed
+into it, and it is swapped in under the lock, which is held only to read the backlog and for the
+swap. A long backlog is absorbed by a fixed-hyper refit on a fresh snapshot instead of a
+sample-by-sample replay.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import threading
+import time
+from typing import Optional, Tuple
+
+import numpy as np
+
+from .worker import provable, RefitJob, RefitResult, run_job
+
+__all__ = ['JobRunner']
+
+
+class JobRunner:
+    """Mixin: the learner's jobs (see the module docstring); the learner provides the state."""
+
+    #: longest catch-up replayed sample by sample; a longer backlog gets a fresh snapshot refit
+    MIN_SNAPSHOT_BACKLOG = 50
+    #: a stamp this many refit periods ahead of the refit clock is a jump, not elapsed time
+    CLOCK_JUMP_PERIODS = 10
+    #: a candidate whose error on the samples that arrived during its fit exceeds the current
+    #: model's by this factor (plus 1 % of their variance) is not swapped in
+    HELD_OUT_FACTOR = 3.0
+    #: rejected candidates retried on fresh data before waiting for the next refit period
+    MAX_RETRIES = 3
+
+    # ------------------------------------------------------------------ decisions
+    def _hypers_outgrown(self) -> bool:
+        """Tell whether the buffer has at least doubled since the hyper-parameters were learned."""
+        return 0 < self._opt_n and self._buf.size >= 2 * self._opt_n
+
+    def _next_job(self, stamp: float) -> Optional[RefitJob]:
+        """Make the one decision (under the lock) of what the worker does next, if anything."""
+        cfg = self.config
+        if self._buf is None or self._buf.size < cfg.min_samples or self.refit_running():
+            return None
+        if self._model is not None and self._clock is None:
+            self._clock = stamp                          # loaded model: start the refit clock
+        if self._clock is not None and cfg.refit_period_s > 0 and \
+                stamp - self._clock > self.CLOCK_JUMP_PERIODS * cfg.refit_period_s:
+            self._clock = stamp            # a jump forward (a bag loop, a bad stamp): no refit
+            self.health.time_jumps_forward += 1
+        due = (self._refit_requested
+               or (self._model is None and self._clock is None)                # first fit
+               or (cfg.refit_period_s > 0 and self._clock is not None and
+                   stamp - self._clock >= cfg.refit_period_s)                 # periodic
+               or (self._model is not None and self._hypers_outgrown() and
+                   self.health.consecutive_refit_failures == 0)               # buffer doubled
+               or (self._retry_at is not None and self._seq >= self._retry_at))  # rejected
+        if due:
+            self._refit_requested = False
+            self._retry_at = None
+            self._clock = stamp
+            return self._fit_job()
+        if self._model is not None and self._model.certificate().stale:
+            # a stale model stays passive pointwise: re-prove at most every refit_period_s / 4
+            gap = cfg.refit_period_s / 4.0 if cfg.refit_period_s > 0 else 0.25
+            last = self._last_recert
+            if last is None or stamp < last or stamp - last >= gap:
+                self._last_recert = stamp
+                return RefitJob('recertify', dataclasses.replace(cfg), self._seq,
+                                self._generation, self._last_t,
+                                model=copy.deepcopy(self._model))
+        return None
+
+    def _fit_job(self) -> RefitJob:
+        h, cfg = self.health, self.config
+        h.refits_started += 1
+        k = h.refits_started
+        optimize = (self._model is None or self._hyper is None or
+                    (cfg.optimize_every_n_refits > 0 and k % cfg.optimize_every_n_refits == 0)
+                    or self._hypers_outgrown())
+        Q, T = self._buf.arrays()
+        # re-learning on data like the last optimum's refines it (no restarts); after the buffer
+        # doubled the data changed enough to search again from scratch
+        warm = self._hyper is not None and not self._hypers_outgrown()
+        return RefitJob('fit', dataclasses.replace(cfg), self._seq, self._generation,
+                        self._last_t, Q=Q, T=T, optimize=optimize, hyper=self._hyper,
+                        warm=warm)
+
+    def request_refit(self) -> Tuple[bool, str]:
+        """Refit now (async: start it in the background). Returns (ok, message)."""
+        with self._lock:
+            if self._buf is None or self._buf.size < self.config.min_samples:
+                n = 0 if self._buf is None else self._buf.size
+                return False, f'not enough samples ({n} < min_samples {self.config.min_samples})'
+            if self.refit_running():
+                return False, 'a refit is already running'
+            if self._last_t is not None:
+                self._clock = self._last_t
+            job = self._fit_job()
+        return self._start(job)
+
+    # ------------------------------------------------------------------ running
+    def _start(self, job: RefitJob) -> Tuple[bool, str]:
+        what = (f'{job.kind} started' if job.kind == 'recertify' else
+                f'refit started on {job.Q.shape[0]} samples '
+                f'({"optimizing" if job.optimize else "fixed"} hyper-parameters)')
+        with self._lock:
+            if self.refit_running():
+                return False, 'a refit is already running'
+            self._pending.clear()
+            if job.config.refit_mode == 'async':
+                self._thread = threading.Thread(target=self._run, args=(job,),
+                                                name='dgp_refit', daemon=True)
+                self._thread.start()
+                return True, what
+            self._thread = None
+        return self._run(job)
+
+    def _run(self, job: RefitJob) -> Tuple[bool, str]:
+        return self._integrate(run_job(job, self._factory))
+
+    def _integrate(self, res: RefitResult) -> Tuple[bool, str]:
+        """Finish a refit job: held-out check, catch-up, swap, record (module docstring)."""
+        job, model, ok, why = res.job, res.model, res.ok, res.reason
+        cfg, h = job.config, self.health
+        t0 = time.perf_counter() - res.seconds
+        seq, rounds = job.seq, 0
+        try:
+            if ok and job.kind == 'fit':
+                ok, why, seq = self._held_out(model, seq)
+                if not ok:
+                    h.refits_rejected += 1
+            while ok:
+                rounds += 1
+                with self._lock:
+                    if job.generation != self._generation:
+                        return False, 'discarded: the estimator was reset'
+                    newer = [(s, q, t) for (s, q, t, _) in self._pending if s > seq]
+                    backlog = max(self.MIN_SNAPSHOT_BACKLOG, cfg.buffer_size // 4)
+                    snapshot = None
+                    if job.kind == 'fit' and rounds <= 5 and len(newer) > backlog:
+                        snapshot = self._buf.arrays() + (self._seq,)
+                    elif not newer or rounds > 5:
+                        for s, q, t in newer:        # the last few, in the lock
+                            model.update(q, t)
+                        self._swap(job, model)
+                        break
+                if snapshot is not None:
+                    model.fit(snapshot[0], snapshot[1], optimize=False)
+                    seq = snapshot[2]
+                else:
+                    for s, q, t in newer:            # replay outside the lock
+                        model.update(q, t)
+                        seq = s
+                ok, why = provable(model, cfg.passivity)
+        except Exception as exc:
+            ok, why = False, f'{type(exc).__name__}: {exc}'
+        dt = time.perf_counter() - t0
+        with self._lock:
+            if job.generation != self._generation:
+                return False, 'discarded: the estimator was reset'
+            self._pending.clear()
+            if job.kind == 'recertify':
+                h.recertifications += int(ok)
+                if not ok:
+                    h.last_refit_error = f'recertification failed: {why}'
+                return ok, (f'recertified in {dt:.3f} s' if ok else h.last_refit_error)
+            if not ok and why.startswith('sanity check') and 'samples that arrived' not in why:
+                h.refits_rejected += 1
+            if ok:
+                self._retry_at = None
+            elif why.startswith('sanity check') and \
+                    h.consecutive_refit_failures < self.MAX_RETRIES:
+                # a rejected candidate is retried once fresh samples arrived (it learns from the
+                # ones it failed on), not only at the next refit period; a short bag, or
+                # refit_period_s = 0, would otherwise keep the first model for good
+                self._retry_at = self._seq + max(10, cfg.buffer_size // 4)
+            h.refit_done(ok, dt, job.stamp, job.optimize,
+                         '' if ok else (why if model is None else f'not swapped in: {why}'),
+                         time.time())
+            error = h.last_refit_error
+        if ok and cfg.model_path:
+            try:
+                self.save(cfg.model_path)
+            except Exception as exc:
+                with self._lock:
+                    h.last_refit_error = f'refit ok but saving failed: {exc}'
+        return (True, f'refit ok in {dt:.3f} s') if ok else (False, error)
+
+    def _held_out(self, model, seq: int) -> Tuple[bool, str, int]:
+        """
+        Compare the candidate with the current model on the samples it has not seen.
+
+        These are the samples that arrived while it was fitted (none in sync mode). The
+        incumbent answered each of them before learning it; the candidate is given the same
+        chance: it answers each sample, then learns it (the replay the swap needs anyway).
+        Both errors are thus one step ahead. Returns (ok, reason, seq of the last sample the
+        candidate learned).
+        """
+        with self._lock:
+            newer = [(s, q, t, b) for (s, q, t, b) in self._pending if s > seq]
+        if sum(b is not None for *_, b in newer) < 10:
+            return True, '', seq
+        e_new, e_old, T = [], [], []
+        try:
+            for s, q, t, b in newer:
+                if b is not None:
+                    e_new.append(model.predict(q[None, :])[0] - t)
+                    e_old.append(b - t)
+                    T.append(t)
+                model.update(q, t)
+                seq = s
+        except Exception as exc:          # noqa: BLE001 - a broken candidate is caught later
+            return True, f'held-out check skipped: {exc}', seq
+        T = np.array(T)
+        e_new = float(np.mean(np.square(e_new)))
+        e_old = float(np.mean(np.square(e_old)))
+        # a candidate within 1 % of the samples' variance is good enough, however good the
+        # incumbent happens to be on them
+        floor = float(np.mean(np.var(T, axis=0))) * 1e-2
+        if e_new > self.HELD_OUT_FACTOR * e_old + floor:
+            return False, (f'sanity check: error on the {len(T)} samples that arrived '
+                           f'during the fit {e_new / max(e_old, 1e-300):.1f} x the current '
+                           f"model's"), seq
+        return True, '', seq
+
+    def _swap(self, job: RefitJob, model) -> None:
+        """Install the candidate (under the lock)."""
+        self._model = model
+        self._version += 1
+        if job.kind == 'fit':
+            self._hyper = model.hyperparams_
+            if job.optimize:
+                self._opt_n = job.Q.shape[0]
+
+    def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
+        """Block until no refit is running; True if none is running at return."""
+        t = self._thread
+        if t is not None:
+            t.join(timeout)
+        return not self.refit_running()
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Wait (bounded) for a running refit to finish; call before exit."""
+        self.wait_for_refit(timeout)

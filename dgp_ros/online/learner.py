@@ -1,0 +1,415 @@
+"""
+The learner: everything the online estimator learns, and nothing it answers (no rclpy).
+
+A :class:`Learner` takes validated measurements in learning time (``learn``), turns them into
+learning samples (the friction residual front end of ``dynamics`` when there is inverse
+dynamics), decides which to keep (``selection``), updates the model, runs refit and re-proof
+jobs (``worker``; their integration is ``jobs``) and publishes what a prediction needs as an
+immutable :class:`~dgp_ros.online.snapshot.Snapshot`. The message path
+(:class:`~dgp_ros.online.estimator.OnlineEstimator`) answers from the newest snapshot and never
+waits for the learner; in the node the learner lives in a child process
+(:mod:`dgp_ros.online.process`), in replay and tests in line (``refit_mode='sync'``).
+
+Refits: the first as soon as ``min_samples`` are buffered; then every ``refit_period_s`` of
+learning time, on ``request_refit()``, and whenever the buffer has doubled since the
+hyper-parameters were learned (20 -> 40 -> 80 ... while it fills; a first optimum learned on a
+few samples of a near-stationary start can be far off). Refit number k re-learns the
+hyper-parameters when ``k % optimize_every_n_refits == 0``, on the first fit and after a
+doubling; otherwise it refits at the current ones. A stale certificate (``certified`` mode, after
+updates) is re-proven by a 'recertify' job, at most every ``refit_period_s / 4``.
+"""
+from __future__ import annotations
+
+from collections import deque
+import copy
+import dataclasses
+import os
+import threading
+from typing import Callable, List, Optional, Tuple
+
+import numpy as np
+
+from dgp_ros.dynamics import AccelFilter, FrictionResidual, make_inverse_dynamics
+from dgp_ros.gp import load_model, make_model
+from dgp_ros.gp.means import make_mean
+
+from .config import check_model_path, EstimatorConfig
+from .health import LearnerHealth, LearnerReport, POWER_WINDOW
+from .jobs import JobRunner
+from .selection import Buffer, Selector
+from .snapshot import Snapshot
+from .worker import provable
+
+__all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
+
+#: structural fields: changing one at run time drops the model and refits
+STRUCTURAL = ('model', 'passivity', 'prior', 'bias', 'buffer_size', 'joints',
+              'operating_domain', 'inverse_dynamics', 'robot_description', 'urdf_file',
+              'accel_half_window_s')
+#: fields of the front end: changing one resets the learner
+FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints')
+
+
+class Learner(JobRunner, LearnerReport):
+    """
+    Online learning of a D-GP from a stream of measurements (module docstring).
+
+    Parameters
+    ----------
+    config : EstimatorConfig
+    model_factory : callable ``(kind, **kwargs) -> model``
+        Builds candidate models (default ``dgp_ros.gp.make_model``); injectable for tests.
+    model_loader : callable ``(path) -> model``
+        Reads ``model_path`` (default ``dgp_ros.gp.load_model``).
+
+    """
+
+    def __init__(self, config: Optional[EstimatorConfig] = None,
+                 model_factory: Optional[Callable] = None,
+                 model_loader: Optional[Callable] = None):
+        self.config = dataclasses.replace(config or EstimatorConfig()).validate()
+        self._factory = model_factory or make_model
+        self._loader = model_loader or load_model
+        self._lock = threading.RLock()
+        self._thread: Optional[threading.Thread] = None
+        self._generation = 0
+        self.load_error = ''
+        self._inverse = make_inverse_dynamics(
+            self.config.inverse_dynamics, robot_description=self.config.robot_description,
+            urdf_file=self.config.urdf_file, joints=self.config.joints)
+        self._init_state()
+        path = self.config.model_path
+        if path and os.path.exists(path):
+            self._load(path)
+
+    # ------------------------------------------------------------------ state
+    def _init_state(self, keep_health: bool = False) -> None:
+        self._generation += 1
+        names = list(self.config.joints) or list(getattr(self._inverse, 'joint_names', []))
+        self._N: Optional[int] = len(names) or None
+        self._front = FrictionResidual(
+            self._inverse, AccelFilter(self.config.accel_half_window_s)
+            if self._inverse is not None else None)
+        self._learned_power: deque = deque(maxlen=POWER_WINDOW)
+        self._buf: Optional[Buffer] = None
+        self._selector = Selector()
+        self._seq = 0                     # samples ever added (orders the catch-up)
+        # (seq, qd, tau, answer before learning) added while a refit runs; only the newest
+        # buffer_size can survive the model's window, so older ones are dropped here
+        self._pending: deque = deque(maxlen=self.config.buffer_size)
+        self._model = None
+        self._hyper: Optional[dict] = None   # warm start of the next fit (hyperparams_)
+        self._opt_n = 0                   # samples the current hyper-parameters were learned on
+        self._prior = None                # fitted prior of the buffer (lazy): (mean, std, seq)
+        self._last_t: Optional[float] = None
+        self._last_added_t: Optional[float] = None
+        self._recent_q: deque = deque(maxlen=100)       # recent candidates (stall check)
+        self._clock: Optional[float] = None   # learning time of the last refit decision
+        self._last_recert: Optional[float] = None
+        self._refit_requested = False
+        self._retry_at: Optional[int] = None  # _seq at which a rejected candidate is retried
+        # bumped whenever what a snapshot holds changes; increasing across resets
+        self._version = getattr(self, '_version', 0) + 1
+        self._snap: Optional[Snapshot] = None
+        if not keep_health:
+            self.health = LearnerHealth()
+
+    @property
+    def trained(self) -> bool:
+        return self._model is not None
+
+    @property
+    def model(self):
+        """Get the current model, None before the first fit (do not mutate it)."""
+        return self._model
+
+    @property
+    def N(self) -> Optional[int]:
+        return self._N
+
+    @property
+    def version(self) -> int:
+        """Return a number that changes whenever the next snapshot would differ."""
+        return self._version
+
+    def samples(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Return copies of the buffered samples, (Qd, Tau), (n, N) each, oldest first."""
+        with self._lock:
+            if self._buf is None:
+                return np.zeros((0, self._N or 0)), np.zeros((0, self._N or 0))
+            return self._buf.arrays()
+
+    def refit_running(self) -> bool:
+        t = self._thread
+        return t is not None and t.is_alive()
+
+    # the rest of the interface the message path uses (``process.LearnerProcess`` has it too)
+    def joint_names(self) -> List[str]:
+        """Joint names the learner selects (``joints``, else the URDF's; [] = message order)."""
+        return list(self.config.joints) or list(getattr(self._inverse, 'joint_names', []))
+
+    @property
+    def needs_position(self) -> bool:
+        """Tell whether the learner uses joint positions (inverse dynamics)."""
+        return self._inverse is not None
+
+    def set_variance(self, on: bool) -> None:
+        """In line the live model always has its factors: nothing to do."""
+
+    def set_residuals(self, on: bool) -> None:
+        """In line the residuals come with ``learn``: nothing to do."""
+
+    def take_residuals(self) -> list:
+        """Residual samples completed since the last call, beyond those ``learn`` returned."""
+        return []
+
+    def note_error(self, message: str) -> None:
+        """Record an error of the message path (shown as the last error)."""
+        with self._lock:
+            self.health.last_refit_error = message
+
+    # ------------------------------------------------------------------ learning
+    def learn(self, t: float, qd: np.ndarray, tau: np.ndarray, q=None) -> Tuple[bool, list]:
+        """
+        Learn from one validated measurement at learning time ``t`` (s).
+
+        qd, tau, q : (N,) velocity, effort, position (q None without inverse dynamics), in the
+        configured joint order. Returns (taken for learning, completed residual samples); the
+        residual samples (``dynamics.ResidualSample``) trail ``t`` by the filter's half window.
+        Never raises on a failing plugin or model (counted, the sample is not learned).
+        """
+        with self._lock:
+            if self._N is None:
+                self._N = qd.size
+            if self._buf is None:
+                self._buf = Buffer(self.config.buffer_size, self._N)
+            if self._last_t is not None and t < self._last_t:
+                # documented policy: keep model and buffer, restart the refit clock, count it
+                self.health.time_jumps_back += 1
+                if self._clock is not None:
+                    self._clock = t
+            self._last_t = t
+            added, residuals = self._learn(t, qd, tau, q)
+            job = self._next_job(t)
+        if job is not None:
+            self._start(job)
+        return added, residuals
+
+    def poll(self) -> None:
+        """Start a job that became due without a new sample (a refit outgrown by its backlog)."""
+        with self._lock:
+            if self._last_t is None:
+                return
+            job = self._next_job(self._last_t)
+        if job is not None:
+            self._start(job)
+
+    def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q) -> Tuple[bool, list]:
+        """Offer the sample for learning (rate limit; the residual front end if any)."""
+        h, sel = self.health, self._selector
+        want = not sel.rate_limited(self.config, stamp)
+        if want:
+            sel.added(stamp)
+        else:
+            h.samples_rate_limited += 1
+        if self._inverse is None:
+            return (self._add(stamp, qd, tau) if want else False), []
+        try:
+            done = self._front.push(stamp, q, qd, tau, want=want)
+        except Exception as exc:        # a plugin that fails: the message is still answered
+            h.last_refit_error = f'inverse dynamics failed: {type(exc).__name__}: {exc}'
+            h.inverse_dynamics_errors += 1
+            return False, []
+        for r in done:
+            if np.all(np.isfinite(r.residual)):
+                self._add(r.stamp_s, r.qd, r.residual)
+        return want, done
+
+    def _add(self, stamp: float, qd: np.ndarray, target: np.ndarray) -> bool:
+        """Add one learning sample to the buffer and the model unless it is a near-duplicate."""
+        h = self.health
+        self._learned_power.append(float(qd @ target))
+        self._recent_q.append(qd)
+        if self._selector.outlier(self.config, self._buf, qd, target):
+            h.samples_outliers += 1
+            return False
+        if not self._selector.novel(self.config, self._buf, qd):
+            h.samples_skipped += 1
+            return False
+        self._last_added_t = stamp
+        self._buf.append(qd, target)
+        self._selector.additions += 1
+        self._seq += 1
+        self._version += 1
+        h.samples_added += 1
+        if self.refit_running():
+            # the incumbent's answer before it learns the sample: the fair opponent of a
+            # candidate that has not seen it either (see jobs.JobRunner._held_out)
+            before = None
+            if self._model is not None:
+                try:
+                    before = self._model.predict(qd[None, :])[0]
+                except Exception:       # noqa: BLE001 - then the sample only serves the replay
+                    before = None
+            self._pending.append((self._seq, qd.copy(), target.copy(), before))
+        if self._model is not None:
+            try:
+                self._model.update(qd, target)
+            except Exception as exc:  # a model that cannot take the sample: refit from buffer
+                h.last_refit_error = f'update failed: {exc}'
+                self._refit_requested = True
+        return True
+
+    # ------------------------------------------------------------------ snapshots
+    def _fitted_prior(self):
+        """(mean, std): the passive prior fitted to the buffer, refitted per tenth of it."""
+        # a 7-joint friction prior costs ~15 ms: refitted on every learned sample it held the
+        # answers while the first fit ran
+        if self._prior is None or self._seq >= self._prior[2] + max(1, self._prior[2] // 10):
+            N = self._N
+            Q, T = self._buf.arrays() if self._buf is not None and self._buf.size else \
+                (np.zeros((0, N)), np.zeros((0, N)))
+            cfg = self.config
+            prior = 'viscous' if cfg.model == 'ard' else cfg.prior
+            try:
+                mean = make_mean(prior, 'full', bool(cfg.bias)).fit(Q, T)
+                resid = T - mean(Q) if Q.shape[0] else T
+                std = np.sqrt(np.mean(resid ** 2, axis=0)) if Q.shape[0] else np.zeros(N)
+            except Exception:           # degenerate buffer: no prior damping at all
+                mean, std = make_mean('viscous', 'full').fit(Q[:0], T[:0]), np.zeros(N)
+            self._prior = (mean, std, self._seq)
+        return self._prior[0], self._prior[1]
+
+    def snapshot(self, variance: bool = True, frozen: bool = False) -> Optional[Snapshot]:
+        """
+        Return what a prediction needs now (None before the first sample).
+
+        variance : include what the posterior variance needs (the Cholesky factors).
+        frozen : a self-contained copy for another process (``process``); else the snapshot
+            refers to the live model (in-line use: the caller learns and answers in turn).
+        """
+        with self._lock:
+            if self._N is None or self._buf is None:
+                return None
+            s = self._snap
+            if s is not None and s.version == self._version and \
+                    (s.frozen, s.variance) == (frozen, variance or not frozen):
+                return s
+            mean, std = self._fitted_prior()
+            model = self._model
+            if model is not None and model.posterior_.structure.has_damping:
+                # a model answers with its own prior and bounds: the same after a reload
+                mean, bound = model.mean_, np.abs(model.Y_train_).max(axis=0)
+            else:
+                Q, T = self._buf.rows_unordered()
+                bound = np.abs(T).max(axis=0) if self._buf.size else np.zeros(self._N)
+            if model is not None and frozen:
+                model = model.snapshot(variance=variance)
+            self._snap = Snapshot(version=self._version, model=model, prior=mean,
+                                  prior_std=std, force_bound=bound,
+                                  learned_through=self._last_t, frozen=frozen,
+                                  variance=variance or not frozen)
+            return self._snap
+
+    # ------------------------------------------------------------------ housekeeping
+    def reset(self) -> None:
+        """Forget the model, the buffer and all counters (a running refit is discarded)."""
+        with self._lock:
+            self._init_state()
+
+    def check_reconfigure(self, config: EstimatorConfig) -> None:
+        """Raise ValueError (with the reason) if ``reconfigure(config)`` would fail."""
+        config = dataclasses.replace(config).validate()
+        if self._N is not None:
+            config.check_dimension(self._N)
+        if any(getattr(self.config, f) != getattr(config, f) for f in FRONT_END):
+            make_inverse_dynamics(config.inverse_dynamics,
+                                  robot_description=config.robot_description,
+                                  urdf_file=config.urdf_file, joints=config.joints)
+
+    def reconfigure(self, config: EstimatorConfig) -> str:
+        """Apply a new validated config; structural changes drop the model and refit."""
+        config = dataclasses.replace(config).validate()
+        if self._N is not None:
+            config.check_dimension(self._N)
+        old = self.config
+        inverse = self._inverse
+        if any(getattr(old, f) != getattr(config, f) for f in FRONT_END):
+            inverse = make_inverse_dynamics(        # ValueError before anything changes
+                config.inverse_dynamics, robot_description=config.robot_description,
+                urdf_file=config.urdf_file, joints=config.joints)
+        with self._lock:
+            self.config = config
+            self._inverse = inverse
+            changed = [f for f in STRUCTURAL if getattr(old, f) != getattr(config, f)]
+            self._version += 1
+            if not changed:
+                return 'applied'
+            if any(f in changed for f in FRONT_END):
+                # other joints, or another rigid-body model: what was learned no longer applies
+                self._init_state(keep_health=True)
+                return f'{", ".join(changed)} changed: estimator reset'
+            data = self._buf.arrays() if self._buf is not None and self._buf.size else None
+            N = self._N
+            self._init_state(keep_health=True)
+            self._N = N
+            if data is not None:
+                self._buf = Buffer.of(config.buffer_size, *data)
+                self._refit_requested = True
+            return f'{", ".join(changed)} changed: model dropped, refit on the next sample'
+
+    def save(self, path: Optional[str] = None) -> str:
+        """
+        Save the current model atomically to ``path`` (default ``model_path``); returns it.
+
+        The model is copied under the lock and written outside it.
+        """
+        path = path or self.config.model_path
+        if not path:
+            raise ValueError('no path given and model_path is not set')
+        check_model_path(path)
+        with self._lock:
+            if self._model is None:
+                raise RuntimeError('no trained model to save yet')
+            model = copy.deepcopy(self._model)
+        path = os.path.abspath(path)
+        model.save(path)
+        return path
+
+    def adopt(self, model, source: str = '') -> None:
+        """
+        Serve ``model`` and buffer its training samples (a model file, a restarted learner).
+
+        Raises ValueError when it does not fit the configuration or cannot be proven.
+        """
+        cfg = self.config
+        kind = model.posterior_.structure.kind
+        if kind != cfg.model:
+            raise ValueError(f'{source or "the"} model is a {kind!r} model, config model='
+                             f'{cfg.model!r}')
+        X, Y = model.X_train_, model.Y_train_
+        if cfg.joints and X.shape[1] != len(cfg.joints):
+            raise ValueError(f'{source or "the"} model has N={X.shape[1]}, joints has '
+                             f'{len(cfg.joints)}')
+        if cfg.passivity != 'none' and model.passivity != cfg.passivity:
+            raise ValueError(f'{source or "the"} model passivity {model.passivity!r} != '
+                             f'{cfg.passivity!r}')
+        model.posterior_ = model.posterior_.ensure_factors()    # a snapshot is predict-only
+        ok, why = provable(model, cfg.passivity)      # re-proves: never trusts the file
+        if not ok:
+            raise ValueError(why)
+        with self._lock:
+            self._N = X.shape[1]
+            self._buf = Buffer.of(cfg.buffer_size, X, Y)
+            self._seq = self._buf.size
+            self._model = model
+            self._hyper = model.hyperparams_
+            self._opt_n = X.shape[0]
+            self._clock = None              # set by the first message
+            self._version += 1
+
+    def _load(self, path: str) -> None:
+        try:
+            self.adopt(self._loader(path), 'file')
+        except Exception as exc:
+            self.load_error = f'could not use {path}: {exc}'

@@ -1,0 +1,389 @@
+"""
+The learner in a child process: what the node's message path talks to (no rclpy).
+
+:class:`LearnerProcess` has the interface of :class:`~dgp_ros.online.learner.Learner` that the
+message path uses, and runs a real ``Learner`` in a child process at a lower scheduling priority:
+
+* samples go through a bounded shared-memory ring (``ring.SampleRing``): a push never waits for
+  the learner; a full ring drops the sample and counts it (``samples_dropped``);
+* the child sends back immutable snapshots (``Learner.snapshot(frozen=True)``: a predict-only
+  model, pickled) at most every ``SNAPSHOT_PERIOD_S``, and less often when they are large (the
+  Cholesky factors for the variance are ``8 N n^2`` bytes: at most ``SNAPSHOT_BYTES_PER_S``),
+  its status every ``STATUS_PERIOD_S``, and the friction residual samples it completed; a
+  receiver thread here installs them by reference assignment;
+* commands (refit, save, reset, reconfigure, ...) go through a pipe and are answered by id.
+
+The child is forked from a fork server started by a fresh interpreter (``forkserver``, with the
+learner's modules preloaded, so a restart costs a fork, not an interpreter start), never from the
+node process itself, whose DDS threads a fork would copy into an inconsistent state. It ignores
+SIGINT and SIGTERM (a terminal's Ctrl-C, or a signal to the process group, reaches it too; the
+node decides: it saves through the child, then stops it), and exits when the node's pipe
+closes (the node died). If it dies, the receiver thread counts it, says why (``status``), and
+starts a new one from the last snapshot's model: the answers never stop, nothing learned up to
+that snapshot is lost.
+"""
+from __future__ import annotations
+
+from collections import deque
+import dataclasses
+import itertools
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from typing import Optional, Tuple
+
+import numpy as np
+
+from .config import EstimatorConfig
+from .ring import SampleRing
+
+__all__ = ['LearnerProcess']
+
+_CTX = None
+
+
+def _context():
+    """Return the fork-server context; its server preloads the learner (started on first use)."""
+    global _CTX
+    if _CTX is None:
+        ctx = multiprocessing.get_context('forkserver')
+        ctx.set_forkserver_preload(['dgp_ros.online.learner'])
+        _CTX = ctx
+    return _CTX
+
+
+class LearnerProcess:
+    """
+    A :class:`~dgp_ros.online.learner.Learner` in a child process (module docstring).
+
+    Parameters
+    ----------
+    config : EstimatorConfig
+        The learner's configuration (its ``refit_mode`` is replaced by 'async' in the child:
+        jobs there run in a thread beside the sample loop).
+    nice : int
+        Niceness increment of the child (``os.nice``).
+
+    Raises
+    ------
+    ValueError
+        The child could not start the learner (with the child's reason).
+
+    """
+
+    RING_ROWS = 1 << 15                 # 33 s of a 1 kHz stream
+    START_TIMEOUT_S = 120.0             # the first start also starts the fork server
+    REPLY_TIMEOUT_S = 30.0
+    SNAPSHOT_PERIOD_S = 0.02
+    SNAPSHOT_BYTES_PER_S = 100e6
+    STATUS_PERIOD_S = 0.25
+
+    def __init__(self, config: EstimatorConfig, nice: int = 10):
+        self.config = config
+        self.nice = int(nice)
+        self._lock = threading.Lock()
+        self._replies: dict = {}
+        self._reply_cv = threading.Condition(self._lock)
+        self._ids = itertools.count(1)
+        self._snap = None
+        self._status: dict = {}
+        self._residuals: deque = deque(maxlen=10000)
+        self._variance = True
+        self._want_residuals = True
+        self._N: Optional[int] = None
+        self._ring: Optional[SampleRing] = None
+        self._retired: Optional[SampleRing] = None
+        self._closing = False
+        self.samples_dropped = 0
+        self.restarts = 0
+        self.exit_reason = ''
+        self._error = ''
+        self._proc = None
+        info = self._spawn(None, wait=True)
+        self.joint_names_ = list(info.get('joint_names', []))
+        self.needs_position = bool(info.get('needs_position', False))
+        self.load_error = info.get('load_error', '')
+
+    # ------------------------------------------------------------------ child life cycle
+    def _spawn(self, init_model, wait: bool) -> dict:
+        """Start a child (and its ring when N is known); returns its handshake info."""
+        ctx = _context()
+        lock = ctx.Lock()
+        ring = None
+        if self._N is not None:
+            ring = SampleRing(1 + 3 * self._N, self.RING_ROWS, lock)
+        cmd_r, cmd_w = ctx.Pipe(duplex=False)
+        out_r, out_w = ctx.Pipe(duplex=False)
+        cfg = dataclasses.asdict(self.config)
+        ring_info = None if ring is None else (ring.name, ring.width, ring.capacity)
+        proc = ctx.Process(target=_child_main, name='dgp_learner', daemon=True,
+                           args=(cfg, cmd_r, out_w, lock, ring_info, init_model, self.nice,
+                                 self._variance, self._want_residuals))
+        proc.start()
+        cmd_r.close()
+        out_w.close()
+        if not out_r.poll(self.START_TIMEOUT_S):
+            proc.kill()
+            raise ValueError('the learner process did not start within '
+                             f'{self.START_TIMEOUT_S:.0f} s')
+        try:
+            kind, info = out_r.recv()
+        except (EOFError, OSError):
+            kind, info = 'error', f'the learner process exited at start (code {proc.exitcode})'
+        if kind != 'ready':
+            proc.join(5.0)
+            raise ValueError(info)
+        if info.get('snapshot') is not None:
+            self._snap = info['snapshot']
+        self._status = info.get('status', {})
+        old_ring = self._ring
+        self._proc, self._cmd, self._out, self._lock_ring = proc, cmd_w, out_r, lock
+        self._ring = ring
+        # the message path may still be pushing into the old ring: it is closed one restart
+        # later (unmapping it under a running push would crash the node)
+        if self._retired is not None:
+            self._retired.close()
+        self._retired = old_ring
+        self._rx = threading.Thread(target=self._receive, args=(proc, out_r),
+                                    name='dgp_learner_rx', daemon=True)
+        self._rx.start()
+        return info
+
+    def _receive(self, proc, conn) -> None:
+        """Install what the child sends; restart it when it dies (unless closing)."""
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                break
+            except Exception as exc:     # noqa: BLE001 - an unreadable message: say so, go on
+                self._error = f'learner message unreadable: {type(exc).__name__}: {exc}'
+                continue
+            kind = msg[0]
+            if kind == 'snapshot':
+                self._snap = msg[1]
+            elif kind == 'status':
+                self._status = msg[1]
+            elif kind == 'residuals':
+                self._residuals.extend(msg[1])
+            elif kind == 'reply':
+                with self._reply_cv:
+                    self._replies[msg[1]] = (msg[2], msg[3])
+                    self._reply_cv.notify_all()
+        proc.join(1.0)
+        if self._closing or proc is not self._proc:
+            return
+        code = proc.exitcode
+        self.exit_reason = (f'learner process died ({_describe_exit(code)}); restarted from '
+                            'the last snapshot')
+        with self._reply_cv:                 # nobody waits forever on a dead child
+            for i in list(self._replies):
+                if self._replies[i] is None:
+                    self._replies[i] = (False, 'the learner process died')
+            self._reply_cv.notify_all()
+        while not self._closing:
+            try:
+                snap = self._snap
+                self._spawn(None if snap is None else snap.model, wait=True)
+                self.restarts += 1
+                return
+            except Exception as exc:        # noqa: BLE001 - keep answering; retry in a while
+                self.exit_reason = f'learner process could not be restarted: {exc}'
+                time.sleep(1.0)
+
+    def _call(self, kind: str, *args, timeout: Optional[float] = None):
+        """Send a command and wait for its reply: (ok, payload); (False, why) on a timeout."""
+        i = next(self._ids)
+        with self._reply_cv:
+            self._replies[i] = None
+        try:
+            self._cmd.send((kind, i) + args)
+        except (OSError, ValueError) as exc:
+            return False, f'the learner process is not reachable: {exc}'
+        deadline = time.monotonic() + (self.REPLY_TIMEOUT_S if timeout is None else timeout)
+        with self._reply_cv:
+            while self._replies.get(i) is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self._replies.pop(i, None)
+                    return False, f'the learner did not answer {kind!r} in time'
+                self._reply_cv.wait(left)
+            return self._replies.pop(i)
+
+    def _send(self, *msg) -> None:
+        try:
+            self._cmd.send(msg)
+        except (OSError, ValueError):
+            pass                          # a dead child: the restart sends the state again
+
+    # ------------------------------------------------------------------ the Learner interface
+    def joint_names(self) -> list:
+        return list(self.joint_names_)
+
+    def set_variance(self, on: bool) -> None:
+        self._variance = bool(on)
+        self._send('variance', self._variance)
+
+    def set_residuals(self, on: bool) -> None:
+        self._want_residuals = bool(on)
+        self._send('residuals', self._want_residuals)
+
+    def learn(self, t: float, qd: np.ndarray, tau: np.ndarray, q=None) -> Tuple[bool, list]:
+        """Hand one sample to the child (never waits); (queued, [])."""
+        if self._N is None:
+            self._N = qd.size
+            lock = self._lock_ring
+            self._ring = SampleRing(1 + 3 * self._N, self.RING_ROWS, lock)
+            self._send('ring', self._ring.name, self._ring.width, self._ring.capacity)
+        ring = self._ring
+        row = np.empty(1 + 3 * self._N)
+        row[0] = t
+        row[1:1 + self._N] = qd
+        row[1 + self._N:1 + 2 * self._N] = tau
+        row[1 + 2 * self._N:] = np.nan if q is None else q
+        if ring is None or not ring.push(row):
+            self.samples_dropped += 1
+            return False, []
+        return True, []
+
+    def snapshot(self, variance: bool = True):
+        return self._snap
+
+    def take_residuals(self) -> list:
+        out = []
+        while self._residuals:
+            out.append(self._residuals.popleft())
+        return out
+
+    def note_error(self, message: str) -> None:
+        self._error = message
+
+    def samples(self):
+        ok, payload = self._call('samples')
+        if not ok:
+            N = self._N or 0
+            return np.zeros((0, N)), np.zeros((0, N))
+        return payload
+
+    def refit_running(self) -> bool:
+        return bool(self._status.get('refit_running', False))
+
+    def request_refit(self) -> Tuple[bool, str]:
+        return self._call('refit')
+
+    def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
+        """Block until the child has no job running and its newest snapshot is installed."""
+        t = 3600.0 if timeout is None else float(timeout)
+        ok, version = self._call('wait', time.time() + t, timeout=t + 5.0)
+        if not ok:
+            return False
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            s = self._snap
+            if s is not None and s.version >= version:
+                return True
+            time.sleep(0.005)
+        return False
+
+    def reset(self) -> None:
+        self._call('reset')
+
+    def check_reconfigure(self, config: EstimatorConfig) -> None:
+        ok, why = self._call('check', dataclasses.asdict(config))
+        if not ok:
+            _raise(why)
+
+    def reconfigure(self, config: EstimatorConfig) -> str:
+        ok, what = self._call('reconfigure', dataclasses.asdict(config))
+        if not ok:
+            _raise(what)
+        self.config = config
+        return what
+
+    def save(self, path: Optional[str] = None, timeout: Optional[float] = None) -> str:
+        """Save in the child; if it cannot (dead, no answer), save the last snapshot here."""
+        path = path or self.config.model_path
+        ok, what = self._call('save', path, timeout=timeout)
+        if ok:
+            return what
+        if what.startswith(('ValueError: ', 'RuntimeError: ')):
+            _raise(what)
+        from .config import check_model_path
+        if not path:
+            raise ValueError('no path given and model_path is not set')
+        check_model_path(path)
+        snap = self._snap
+        if snap is None or snap.model is None:
+            raise RuntimeError('no trained model to save yet')
+        path = os.path.abspath(path)
+        snap.model.save(path)
+        return path
+
+    def status(self) -> dict:
+        d = dict(self._status)
+        d['samples_dropped'] = self.samples_dropped
+        d['learner_restarts'] = self.restarts
+        d['learner_alive'] = self._proc is not None and self._proc.is_alive()
+        warnings = list(d.get('warnings', []))
+        if self.exit_reason:
+            warnings.append(self.exit_reason)
+        if self._error:
+            d['last_refit_error'] = d.get('last_refit_error') or self._error
+        d['warnings'] = warnings
+        return d
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Let a running job finish (bounded), stop the child, release the ring."""
+        self._closing = True
+        proc = self._proc
+        if proc is not None:
+            # the child's end of the pipe closing is the sign it is gone (``proc.is_alive`` asks
+            # the fork server, which a signal to the process group may have ended)
+            self._send('stop', float(timeout))
+            self._rx.join(timeout + 2.0)
+            if self._rx.is_alive():
+                try:
+                    os.kill(proc.pid, signal.SIGKILL)
+                except OSError:
+                    pass
+                self._rx.join(2.0)
+            self._cmd.close()
+        for ring in (self._ring, self._retired):
+            if ring is not None:
+                ring.close()
+        self._ring = self._retired = None
+
+
+def _raise(what: str) -> None:
+    """Raise the child's 'ValueError: ...' / 'RuntimeError: ...' reply here, as that type."""
+    kind, _, text = what.partition(': ')
+    raise (RuntimeError if kind == 'RuntimeError' else ValueError)(
+        text if kind in ('ValueError', 'RuntimeError') else what)
+
+
+def _describe_exit(code) -> str:
+    if code is None:
+        return 'no exit status'
+    if code < 0:
+        try:
+            return f'killed by {signal.Signals(-code).name}'
+        except ValueError:
+            return f'killed by signal {-code}'
+    return f'exit code {code}'
+
+
+def _child_main(cfg: dict, cmd, out, lock, ring_info, init_model, nice: int, variance: bool,
+                residuals: bool) -> None:
+    """Run a Learner on the ring's samples: the child process (module docstring)."""
+    # Ctrl-C and a SIGTERM to the process group are the node's to handle: it saves through
+    # this process, then stops it. The child ends when the node's pipe closes (the node died).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        os.nice(nice)
+    except OSError:
+        pass
+    from .child import LearnerLoop
+    LearnerLoop(cfg, cmd, out, lock, ring_info, init_model, variance, residuals).run()
