@@ -189,6 +189,7 @@ def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False
         est = OnlineEstimator(config)
     except ValueError as exc:
         raise ReplayError(f'invalid estimator parameters: {exc}') from None
+    est.set_source('bag')
     reader = open_bag(bag)
     t0 = time.perf_counter()
     out, n, undecodable = [], 0, 0

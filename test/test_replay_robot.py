@@ -58,6 +58,19 @@ def test_urdf_replay_learns_friction_and_saves_a_loadable_model(panda_bag, tmp_p
     assert np.einsum('ij,ij->i', Qs, m.predict(Qs)).min() >= 0
 
 
+def test_replay_with_the_default_prior_prints_no_python_warning(panda_bag, tmp_path, recwarn):
+    """The Stribeck prior fitted to an empty buffer (the first answers) warned 'Mean of empty
+    slice' on every replay with inverse dynamics."""
+    bag, _ = panda_bag
+    rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--joints', ','.join(NAMES),
+                      '--model', 'diag', '--no-plots', '-q', '--set', 'inverse_dynamics=urdf',
+                      '--set', f'urdf_file={example_robot_urdf("panda")}',
+                      '--set', 'refit_period_s=0.0', '--set', 'min_samples=150'])
+    assert rc == 0
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)], \
+        [str(w.message) for w in recwarn]
+
+
 def test_raw_effort_replay_warns_with_the_reason(panda_bag, tmp_path, capsys):
     bag, _ = panda_bag
     rc = replay_main([str(bag), '--out', str(tmp_path / 'o')] + COMMON)

@@ -212,7 +212,8 @@ class FrictionMean(PriorMean):
                 for fv in vs_grid:
                     eps, vs = fe * rms[j], fv * rms[j]
                     A = self._basis(v, eps, vs)
-                    if self.stribeck and np.mean(np.abs(v) < vs) < self.STRIBECK_EVIDENCE:
+                    if self.stribeck and (n == 0 or np.mean(np.abs(v) < vs) <
+                                          self.STRIBECK_EVIDENCE):
                         A = A[:, :2]
                     c, b, res = _nnls_one(A, Tau[:, j], bias,
                                           np.r_[np.inf, fmax, fmax][:A.shape[1]])

@@ -100,6 +100,21 @@ class OnlineEstimator:
         self._want_stddev, self._want_damping = stddev, damping
         self._want_residuals = residuals
 
+    def set_source(self, source: str) -> None:
+        """
+        Say where the messages come from: 'live' (default) or 'bag'.
+
+        It names the cause of stamp gaps on /diagnostics (a recorded log's own holes vs.
+        messages lost on the way).
+        """
+        if source not in ('live', 'bag'):
+            raise ValueError(f"source must be 'live' or 'bag', got {source!r}")
+        self.health.source = source
+
+    def note_lost(self, count: int) -> None:
+        """Count messages the middleware reported lost (its message-lost event)."""
+        self.health.messages_lost += int(count)
+
     @property
     def load_error(self) -> str:
         return self._learner.load_error
@@ -379,8 +394,6 @@ class OnlineEstimator:
             if self._arrival_t0 is not None:
                 warnings.insert(0, 'message stamps do not advance (header.stamp constant or 0): '
                                 "learning uses the arrival time; fix the driver's stamps")
-            if self.health.learner_error:
-                warnings.append(self.health.learner_error)
             state = {'trained': d.get('trained', False), 'fill': d.get('buffer_fill', 0),
                      'min_samples': self.config.min_samples,
                      'certifies': policy_class(self.config.passivity).certifies,

@@ -154,9 +154,10 @@ class Health:
     passivity_fallbacks: int = 0      # estimates replaced because their power was negative
     nonfinite_outputs: int = 0        # estimates replaced because they were not finite
     answers_bounded: int = 0          # estimates scaled down to the learned force range
-    samples_dropped: int = 0          # accepted messages the learner's channel had no room for
-    learner_restarts: int = 0         # learner processes that died and were restarted
-    learner_error: str = ''           # why the last learner process died
+    messages_lost: int = 0            # reported lost by the middleware (its message-lost event)
+    #: where the messages come from: 'live' (a subscription) or 'bag' (a recorded log: a gap in
+    #: its stamps is a hole in the data, no queue or network dropped anything)
+    source: str = 'live'
     recent_ok: deque = field(default_factory=lambda: deque(maxlen=REJECT_WINDOW))
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
     gaps: GapCounter = field(default_factory=GapCounter)   # messages missing from the stream
@@ -190,8 +191,7 @@ class Health:
             'passivity_fallbacks': self.passivity_fallbacks,
             'nonfinite_outputs': self.nonfinite_outputs,
             'answers_bounded': self.answers_bounded,
-            'samples_dropped': self.samples_dropped,
-            'learner_restarts': self.learner_restarts,
+            'messages_lost': self.messages_lost,
             'latency_median_s': float(np.median(lat)) if lat is not None else float('nan'),
             'latency_p99_s': float(np.percentile(lat, 99)) if lat is not None else float('nan'),
         }
@@ -224,10 +224,18 @@ class Health:
                            'of recent)')
             level = max(level, WARN)
         if self.gaps.recent_fraction > MISSING_WARN_FRACTION:
-            reasons.append('messages missing from the stream '
-                           f'({100 * self.gaps.recent_fraction:.1f}'
-                           '% of recent, from stamp gaps): the input queue (queue_depth) '
-                           'overflowed, or the publisher or network dropped them')
+            frac = f'{100 * self.gaps.recent_fraction:.1f}% of recent'
+            if self.source == 'bag':
+                reasons.append(f'gaps in the recorded stamps ({frac} expected messages '
+                               'missing): the log itself has holes (the logger skipped samples)')
+            elif self.messages_lost:
+                reasons.append(f'messages missing from the stream ({frac}, from stamp gaps); '
+                               f'the middleware reported {self.messages_lost} lost: the input '
+                               'queue (queue_depth) overflowed or the network dropped them')
+            else:
+                reasons.append(f'gaps in the message stamps ({frac} expected messages '
+                               'missing); the middleware reported none lost: the publisher '
+                               'skipped them, or a network dropped them unseen')
             level = max(level, WARN)
         failures = learner.get('consecutive_refit_failures', 0)
         error = learner.get('last_refit_error', '')

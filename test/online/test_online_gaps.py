@@ -61,13 +61,21 @@ def test_the_estimator_reports_missing_messages_and_warns():
     d = est.diagnostics()
     assert abs(d['messages_missing'] - 150) <= 3, d['messages_missing']
     assert d['recent_missing_fraction'] > 0.01
-    assert d['level'] >= WARN and 'messages missing from the stream' in d['message']
+    # no loss reported by the middleware: the cause named is the publisher's stamps
+    assert d['level'] >= WARN and 'gaps in the message stamps' in d['message']
+    assert 'reported none lost' in d['message'] and 'queue_depth' not in d['message']
+    est.note_lost(150)                                # the message-lost event counted them
+    d = est.diagnostics()
+    assert d['messages_lost'] == 150 and 'messages missing from the stream' in d['message']
     assert 'queue_depth' in d['message']
+    est.set_source('bag')                             # a recorded log: its own holes
+    d = est.diagnostics()
+    assert 'gaps in the recorded stamps' in d['message'] and 'queue_depth' not in d['message']
     for s in t[-1] + 0.01 * np.arange(1, 1200):       # a clean stretch clears the warning
         q = np.array([np.sin(s), np.cos(0.5 * s)])
         est.process(s, NAMES, q, 2.0 * q)
     d = est.diagnostics()
-    assert d['recent_missing_fraction'] == 0.0 and 'messages missing' not in d['message']
+    assert d['recent_missing_fraction'] == 0.0 and 'gaps in the' not in d['message']
     assert d['level'] == OK, d['message']
 
 
