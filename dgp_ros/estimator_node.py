@@ -35,9 +35,9 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
 from dgp_ros.messages import joint_state_sample
@@ -90,6 +90,8 @@ class EstimatorNode(Node):
         super().__init__(NODE_NAME, allow_undeclared_parameters=True, **kwargs)
         declare_parameters(self, list(PARAMS.values()) + list(NODE_PARAMS.values()))
         check_unknown_overrides(self)
+        self._topic_urdf = ''                   # the URDF received on /robot_description
+        self._urdf_error = ''
         config = self._config_from({})          # ValueError: main exits 2 with the reason
         self.estimator = OnlineEstimator(config)
         if self.estimator.load_error:
@@ -103,12 +105,15 @@ class EstimatorNode(Node):
         qos_in = QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
                             reliability=ReliabilityPolicy.BEST_EFFORT)
         self.sub = self._subscribe_state(qos_in)
-        self.pub_force = self.create_publisher(JointState, '~/damping_force', 10)
-        self.pub_std = self.create_publisher(JointState, '~/damping_force_stddev', 10)
-        self.pub_D = self.create_publisher(Float64MultiArray, '~/damping_matrix', 10)
-        self.pub_D_stamped = self.create_publisher(JointState, '~/damping_matrix_stamped', 10)
-        self.pub_power = self.create_publisher(Float64, '~/dissipated_power', 10)
-        self.pub_residual = self.create_publisher(JointState, '~/friction_residual', 100)
+        # a wake-up answers up to MAX_BATCH messages at once: the history of every per-message
+        # output holds a few such bursts (a reliable reader gets all of them)
+        out = 4 * self.MAX_BATCH
+        self.pub_force = self.create_publisher(JointState, '~/damping_force', out)
+        self.pub_std = self.create_publisher(JointState, '~/damping_force_stddev', out)
+        self.pub_D = self.create_publisher(Float64MultiArray, '~/damping_matrix', out)
+        self.pub_D_stamped = self.create_publisher(JointState, '~/damping_matrix_stamped', out)
+        self.pub_power = self.create_publisher(Float64, '~/dissipated_power', out)
+        self.pub_residual = self.create_publisher(JointState, '~/friction_residual', out)
         self.pub_bias = self.create_publisher(JointState, '~/bias', 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_service(Trigger, '~/refit', self._srv_refit)
@@ -116,6 +121,15 @@ class EstimatorNode(Node):
         self.create_service(Trigger, '~/save_model', self._srv_save)
         self._diag_timer = self.create_timer(
             float(self.get_parameter('diagnostics_period_s').value), self._publish_diagnostics)
+        if config.awaits_urdf:
+            # the ROS convention (robot_state_publisher, ros2_control): the robot model is
+            # published once, transient local, on /robot_description
+            self.sub_urdf = self.create_subscription(
+                String, '/robot_description', self._on_robot_description,
+                QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            self.get_logger().info('inverse_dynamics=urdf without robot_description or '
+                                   'urdf_file: waiting for the URDF on /robot_description')
         self._last_msg_time = None
         self._age = deque(maxlen=1000)        # stamp -> answer, node clock (s)
         self.get_logger().info(
@@ -152,6 +166,22 @@ class EstimatorNode(Node):
                      self.pub_D_stamped.get_subscription_count()) > 0,
             residuals=self.pub_residual.get_subscription_count() > 0)
 
+    def _on_robot_description(self, msg: String) -> None:
+        """Build the rigid-body model from a URDF on /robot_description (again on a new one)."""
+        if msg.data == self._topic_urdf:
+            return
+        try:
+            what = self.estimator.reconfigure(dataclasses.replace(
+                self.estimator.config, robot_description=msg.data))
+        except ValueError as exc:
+            self._urdf_error = (f'the URDF on /robot_description is not usable ({exc}); '
+                                'waiting for another one')
+            self.get_logger().error(self._urdf_error)
+            return
+        self._topic_urdf, self._urdf_error = msg.data, ''
+        self.get_logger().info(f'robot model from /robot_description ({len(msg.data)} bytes, '
+                               f'joints {self.estimator.learner.joint_names()}): {what}')
+
     # ---------------------------------------------------------- parameters
     def _config_from(self, overrides: dict) -> EstimatorConfig:
         values = {}
@@ -162,6 +192,8 @@ class EstimatorNode(Node):
             if isinstance(v, (list, tuple)) or type(v).__name__ == 'array':
                 v = list(v)
             values[name] = v
+        if self._topic_urdf and not (values['robot_description'] or values['urdf_file']):
+            values['robot_description'] = self._topic_urdf      # what the topic gave
         return EstimatorConfig.from_dict(values).validate()
 
     def _on_set_parameters(self, params: List) -> SetParametersResult:
@@ -251,6 +283,9 @@ class EstimatorNode(Node):
         if self._last_msg_time is None:
             d['message'] = 'no measurements received yet; ' + d['message']
             d['level'] = max(d['level'], WARN)
+        if self._urdf_error:
+            d['message'] = self._urdf_error + '; ' + d['message']
+            d['level'] = ERROR
         if self._age:
             a = np.array(self._age)
             d['stamp_to_answer_median_s'] = float(np.median(a))

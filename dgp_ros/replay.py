@@ -164,9 +164,14 @@ def build_config(params: Optional[dict] = None, **overrides):
     d['refit_mode'] = 'sync'
     d['model_path'] = ''  # replay never reads or overwrites a model file
     try:
-        return EstimatorConfig.from_dict(d).validate()
+        cfg = EstimatorConfig.from_dict(d).validate()
     except (TypeError, ValueError) as exc:
         raise ReplayError(f'invalid estimator parameters: {exc}') from None
+    if cfg.awaits_urdf:
+        raise ReplayError('inverse_dynamics=urdf needs the URDF offline: --set urdf_file=PATH '
+                          '(or robot_description=TEXT); a bag replay has no /robot_description '
+                          'topic')
+    return cfg
 
 
 # ------------------------------------------------------------------------------------ replay

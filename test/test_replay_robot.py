@@ -59,8 +59,12 @@ def test_urdf_replay_learns_friction_and_saves_a_loadable_model(panda_bag, tmp_p
 
 
 def test_replay_with_the_default_prior_prints_no_python_warning(panda_bag, tmp_path, recwarn):
-    """The Stribeck prior fitted to an empty buffer (the first answers) warned 'Mean of empty
-    slice' on every replay with inverse dynamics."""
+    """
+    Replay prints no RuntimeWarning.
+
+    The Stribeck prior fitted to an empty buffer (the first answers) warned 'Mean of empty
+    slice' on every replay with inverse dynamics.
+    """
     bag, _ = panda_bag
     rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--joints', ','.join(NAMES),
                       '--model', 'diag', '--no-plots', '-q', '--set', 'inverse_dynamics=urdf',
@@ -69,6 +73,14 @@ def test_replay_with_the_default_prior_prints_no_python_warning(panda_bag, tmp_p
     assert rc == 0
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)], \
         [str(w.message) for w in recwarn]
+
+
+def test_urdf_without_a_urdf_is_refused_offline(panda_bag, tmp_path, capsys):
+    """The node waits for /robot_description; a bag replay has no such topic: exit 2, why."""
+    bag, _ = panda_bag
+    rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--set', 'inverse_dynamics=urdf'])
+    err = capsys.readouterr().err
+    assert rc == 2 and 'urdf_file' in err and '/robot_description' in err, err
 
 
 def test_raw_effort_replay_warns_with_the_reason(panda_bag, tmp_path, capsys):

@@ -182,7 +182,8 @@ class LearnerLoop:
                 L.check_reconfigure(self._config(args[0]))
                 ok, what = True, ''
             elif kind == 'reconfigure':
-                ok, what = True, L.reconfigure(self._config(args[0]))
+                ok, what = True, (L.reconfigure(self._config(args[0])), L.joint_names(),
+                                  L.needs_position)
             elif kind == 'samples':
                 ok, what = True, L.samples()
             else:

@@ -70,7 +70,8 @@ PARAMS = {p.name: p for p in (
               "robot_description or urdf_file) or 'python:<module>:<function>' "
               '(f(q, qd, qdd) -> tau_rb); start-up only', max_len=4096, read_only=True),
     ParamSpec('robot_description', 'str', '', 'URDF text for inverse_dynamics=urdf (the ROS '
-              'convention; wins over urdf_file); start-up only', max_len=50_000_000,
+              'convention; wins over urdf_file; with neither, the node takes it from the '
+              '/robot_description topic); start-up only', max_len=50_000_000,
               read_only=True),
     ParamSpec('urdf_file', 'str', '', 'URDF path for inverse_dynamics=urdf; start-up only',
               max_len=4096, read_only=True),
@@ -156,12 +157,22 @@ class EstimatorConfig:
                                             len(spec.split(':')) == 3 and all(spec.split(':'))):
             raise ValueError(f"inverse_dynamics={spec!r}: must be '', 'urdf' or "
                              "'python:<module>:<function>'")
-        if spec == 'urdf' and not (self.robot_description or self.urdf_file):
-            raise ValueError('inverse_dynamics=urdf needs a URDF: set robot_description (URDF '
-                             'text) or urdf_file (a path)')
-        if spec == 'urdf' and not self.robot_description and not os.path.isfile(self.urdf_file):
+        if spec == 'urdf' and not self.robot_description and self.urdf_file and \
+                not os.path.isfile(self.urdf_file):
             raise ValueError(f'urdf_file={self.urdf_file!r}: no such file')
         return self
+
+    @property
+    def awaits_urdf(self) -> bool:
+        """
+        Tell whether the robot model is still to come.
+
+        ``inverse_dynamics=urdf`` with neither ``robot_description`` nor ``urdf_file``: the node
+        takes the URDF from the ``/robot_description`` topic (as ros2_control does); until then
+        nothing is learned.
+        """
+        return self.inverse_dynamics == 'urdf' and not (self.robot_description
+                                                        or self.urdf_file)
 
     def check_dimension(self, N: int) -> None:
         """Raise ValueError when a per-joint parameter does not fit N joints."""

@@ -93,6 +93,7 @@ class LearnerHealth:
     samples_rate_limited: int = 0
     samples_outliers: int = 0         # isolated far outliers not learned
     inverse_dynamics_errors: int = 0  # samples the inverse dynamics could not process
+    samples_awaiting_model: int = 0   # not learned: the robot model (URDF) has not come yet
     time_jumps_back: int = 0
     time_jumps_forward: int = 0
     refits_started: int = 0
@@ -138,6 +139,7 @@ class LearnerHealth:
             'last_refit_duration_s': self.last_refit_duration_s,
             'last_refit_optimized': self.last_refit_optimized,
             'inverse_dynamics_errors': self.inverse_dynamics_errors,
+            'samples_awaiting_model': self.samples_awaiting_model,
             'time_jumps_back': self.time_jumps_back, 'time_jumps_forward': self.time_jumps_forward,
             'recertifications': self.recertifications,
             'refit_durations': list(self.refit_durations),
@@ -290,6 +292,10 @@ class LearnerReport:
     def _warnings(self) -> List[str]:
         """Conditions on the data the user should act on (WARN with the reason)."""
         out = []
+        if self.config.awaits_urdf:
+            out.append('waiting for the robot model: inverse_dynamics=urdf and neither '
+                       'robot_description nor urdf_file is set; nothing is learned until a URDF '
+                       'arrives on /robot_description (robot_state_publisher publishes it)')
         if self._stalled():
             out.append(f'learning stalled: no sample learned for '
                        f'{self._last_t - self._last_added_t:.0f} s while the velocities '

@@ -74,9 +74,7 @@ class Learner(JobRunner, LearnerReport):
         self._thread: Optional[threading.Thread] = None
         self._generation = 0
         self.load_error = ''
-        self._inverse = make_inverse_dynamics(
-            self.config.inverse_dynamics, robot_description=self.config.robot_description,
-            urdf_file=self.config.urdf_file, joints=self.config.joints)
+        self._inverse = _inverse_dynamics(self.config)
         self._init_state()
         path = self.config.model_path
         if path and os.path.exists(path):
@@ -151,7 +149,7 @@ class Learner(JobRunner, LearnerReport):
     @property
     def needs_position(self) -> bool:
         """Tell whether the learner uses joint positions (inverse dynamics)."""
-        return self._inverse is not None
+        return bool(self.config.inverse_dynamics)
 
     def set_variance(self, on: bool) -> None:
         """In line the live model always has its factors: nothing to do."""
@@ -207,6 +205,9 @@ class Learner(JobRunner, LearnerReport):
     def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q) -> Tuple[bool, list]:
         """Offer the sample for learning (rate limit; the residual front end if any)."""
         h, sel = self.health, self._selector
+        if self.config.awaits_urdf:             # no rigid-body model yet: nothing to learn
+            h.samples_awaiting_model += 1
+            return False, []
         want = not sel.rate_limited(self.config, stamp)
         if want:
             sel.added(stamp)
@@ -323,9 +324,7 @@ class Learner(JobRunner, LearnerReport):
         if self._N is not None:
             config.check_dimension(self._N)
         if any(getattr(self.config, f) != getattr(config, f) for f in FRONT_END):
-            make_inverse_dynamics(config.inverse_dynamics,
-                                  robot_description=config.robot_description,
-                                  urdf_file=config.urdf_file, joints=config.joints)
+            _inverse_dynamics(config)
 
     def reconfigure(self, config: EstimatorConfig) -> str:
         """Apply a new validated config; structural changes drop the model and refit."""
@@ -335,9 +334,7 @@ class Learner(JobRunner, LearnerReport):
         old = self.config
         inverse = self._inverse
         if any(getattr(old, f) != getattr(config, f) for f in FRONT_END):
-            inverse = make_inverse_dynamics(        # ValueError before anything changes
-                config.inverse_dynamics, robot_description=config.robot_description,
-                urdf_file=config.urdf_file, joints=config.joints)
+            inverse = _inverse_dynamics(config)     # ValueError before anything changes
         with self._lock:
             self.config = config
             self._inverse = inverse
@@ -413,3 +410,12 @@ class Learner(JobRunner, LearnerReport):
             self.adopt(self._loader(path), 'file')
         except Exception as exc:
             self.load_error = f'could not use {path}: {exc}'
+
+
+def _inverse_dynamics(config: EstimatorConfig):
+    """Build the rigid-body model of ``config`` (None: without one, or the URDF is awaited)."""
+    if config.awaits_urdf:
+        return None
+    return make_inverse_dynamics(config.inverse_dynamics,
+                                 robot_description=config.robot_description,
+                                 urdf_file=config.urdf_file, joints=config.joints)

@@ -300,6 +300,7 @@ class LearnerProcess:
         if not ok:
             _raise(what)
         self.config = config
+        what, self.joint_names_, self.needs_position = what
         return what
 
     def save(self, path: Optional[str] = None, timeout: Optional[float] = None) -> str:

@@ -111,8 +111,10 @@ def test_python_plugin_and_bad_specs(tmp_path, monkeypatch, sim):
     assert np.abs(np.array([r.tau_rb for r in res])).max() > 1.0       # the plugin's torque
     with pytest.raises(ValueError, match='python:<module>:<function>'):
         EstimatorConfig(inverse_dynamics='python:only_module').validate()
-    with pytest.raises(ValueError, match='robot_description'):
-        EstimatorConfig(inverse_dynamics='urdf').validate()
+    # urdf without a URDF is valid: the node takes it from /robot_description; until then the
+    # learner learns nothing and says so
+    cfg = EstimatorConfig(inverse_dynamics='urdf').validate()
+    assert cfg.awaits_urdf and not EstimatorConfig(inverse_dynamics='').awaits_urdf
     with pytest.raises(ValueError, match='no such file'):
         EstimatorConfig(inverse_dynamics='urdf', urdf_file='/nonexistent.urdf').validate()
     with pytest.raises(ValueError):

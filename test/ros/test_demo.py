@@ -32,19 +32,30 @@ def test_demo_synthetic_runs_and_writes_outputs(tmp_path):
         open(f'/proc/{pid}/stat').read().split()[2] == 'Z'
 
 
-def test_launch_file_is_valid_python_with_both_nodes():
-    src = open(os.path.join(REPO, 'launch', 'demo.launch.py')).read()
+LAUNCH = {'demo.launch.py': ("executable='estimator'", "executable='sim_bridge'"),
+          # a robot that runs robot_state_publisher: the URDF comes from /robot_description
+          'robot.launch.py': ("executable='estimator'", "'inverse_dynamics': 'urdf'",
+                              "('generalized_state', LaunchConfiguration('joint_states'))")}
+
+
+@pytest.mark.parametrize('name', sorted(LAUNCH))
+def test_launch_file_is_valid_python_with_its_nodes(name):
+    src = open(os.path.join(REPO, 'launch', name)).read()
     tree = ast.parse(src)
     assert any(isinstance(n, ast.FunctionDef) and n.name == 'generate_launch_description'
                for n in tree.body)
-    assert "executable='estimator'" in src and "executable='sim_bridge'" in src
+    for needle in LAUNCH[name]:
+        assert needle in src, needle
+    if name == 'robot.launch.py':          # no URDF parameter: the topic is the source
+        assert "'robot_description'" not in src and "'urdf_file'" not in src
 
 
-def test_launch_description_builds():
+@pytest.mark.parametrize('name', sorted(LAUNCH))
+def test_launch_description_builds(name):
     pytest.importorskip('launch_ros')
     import importlib.util
-    spec = importlib.util.spec_from_file_location('demo_launch',
-                                                  os.path.join(REPO, 'launch', 'demo.launch.py'))
+    spec = importlib.util.spec_from_file_location(name.split('.')[0],
+                                                  os.path.join(REPO, 'launch', name))
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     assert len(mod.generate_launch_description().entities) >= 2
