@@ -772,7 +772,8 @@ def semantic_cases(sandbox: Sandbox) -> list:
         ('passivity paper for ard', {'model': 'ard', 'passivity': 'paper'}),
         ('inverse_dynamics bogus', {'inverse_dynamics': 'bogus'}),
         ('inverse_dynamics python: (malformed)', {'inverse_dynamics': 'python:'}),
-        ('inverse_dynamics urdf without URDF', {'inverse_dynamics': 'urdf'}),
+        # urdf with neither robot_description nor urdf_file is valid: the node then takes the
+        # URDF from /robot_description (test/ros/test_robot_description.py)
         ('inverse_dynamics urdf, missing urdf_file',
          {'inverse_dynamics': 'urdf', 'urdf_file': '/nonexistent/robot.urdf'}),
         ('model_path a text file (.txt)', {'model_path': d('notes.txt')}),

@@ -101,6 +101,9 @@ class LearnerHealth:
     refits_failed: int = 0
     refits_rejected: int = 0          # candidates the sanity check refused
     recertifications: int = 0
+    absorbs: int = 0                  # refits at fixed hyper-parameters taking new samples in
+    absorbs_rejected: int = 0         # such refits the bound check refused
+    last_absorb_error: str = ''
     consecutive_refit_failures: int = 0
     last_refit_error: str = ''
     last_refit_stamp: Optional[float] = None
@@ -141,7 +144,8 @@ class LearnerHealth:
             'inverse_dynamics_errors': self.inverse_dynamics_errors,
             'samples_awaiting_model': self.samples_awaiting_model,
             'time_jumps_back': self.time_jumps_back, 'time_jumps_forward': self.time_jumps_forward,
-            'recertifications': self.recertifications,
+            'recertifications': self.recertifications, 'absorbs': self.absorbs,
+            'absorbs_rejected': self.absorbs_rejected, 'last_absorb_error': self.last_absorb_error,
             'refit_durations': list(self.refit_durations),
         }
 
@@ -247,6 +251,10 @@ class Health:
         elif failures:
             reasons.append(f'refit failing ({failures} in a row: {error})')
             level = max(level, ERROR if failures >= REFIT_FAIL_ERROR else WARN)
+        if learner.get('last_absorb_error'):
+            reasons.append(f'new samples not absorbed ({learner["last_absorb_error"]}); the '
+                           'previous model serves')
+            level = max(level, WARN)
         if state['load_error']:
             reasons.append('model file not used')
             level = max(level, WARN)

@@ -4,10 +4,9 @@ Refit and re-proof jobs of the learner: start, integrate, swap (no rclpy).
 ``JobRunner`` is the job half of :class:`~dgp_ros.online.learner.Learner`: it starts a job
 (``worker.run_job``: in a background thread with ``refit_mode='async'``, in line with
 ``'sync'``), and integrates its result: the candidate is compared one step ahead with the
-incumbent on the samples that arrived during its fit (``_held_out``), those samples are replayed
-into it, and it is swapped in under the lock, which is held only to read the backlog and for the
-swap. A long backlog is absorbed by a fixed-hyper refit on a fresh snapshot instead of a
-sample-by-sample replay.
+incumbent on the samples that arrived during its fit (``_held_out``), refitted at its new
+hyper-parameters on the buffer as it is now, and swapped in under the lock, which is held only to
+read the buffer and for the swap.
 """
 from __future__ import annotations
 
@@ -27,8 +26,6 @@ __all__ = ['JobRunner']
 class JobRunner:
     """Mixin: the learner's jobs (see the module docstring); the learner provides the state."""
 
-    #: longest catch-up replayed sample by sample; a longer backlog gets a fresh snapshot refit
-    MIN_SNAPSHOT_BACKLOG = 50
     #: a stamp this many refit periods ahead of the refit clock is a jump, not elapsed time
     CLOCK_JUMP_PERIODS = 10
     #: a candidate whose error on the samples that arrived during its fit exceeds the current
@@ -73,7 +70,7 @@ class JobRunner:
                 self._last_recert = stamp
                 return RefitJob('recertify', dataclasses.replace(cfg), self._seq,
                                 self._generation, self._last_t,
-                                model=copy.deepcopy(self._model))
+                                model=copy.deepcopy(self._model), source=self._model)
         return None
 
     def _fit_job(self) -> RefitJob:
@@ -125,39 +122,29 @@ class JobRunner:
         return self._integrate(run_job(job, self._factory))
 
     def _integrate(self, res: RefitResult) -> Tuple[bool, str]:
-        """Finish a refit job: held-out check, catch-up, swap, record (module docstring)."""
+        """
+        Finish a job: held-out check, catch-up, swap, record (module docstring).
+
+        A fitted candidate that passes the held-out check is refitted at its new
+        hyper-parameters on the buffer as it is now (the samples that arrived during its fit
+        included) and swapped in; a re-proven model is swapped in only if the model did not
+        change meanwhile (else the next re-proof covers the newer one).
+        """
         job, model, ok, why = res.job, res.model, res.ok, res.reason
         cfg, h = job.config, self.health
         t0 = time.perf_counter() - res.seconds
-        seq, rounds = job.seq, 0
         try:
             if ok and job.kind == 'fit':
-                ok, why, seq = self._held_out(model, seq)
+                ok, why, _ = self._held_out(model, job.seq)
                 if not ok:
                     h.refits_rejected += 1
-            while ok:
-                rounds += 1
+            if ok and job.kind == 'fit':
                 with self._lock:
-                    if job.generation != self._generation:
-                        return False, 'discarded: the estimator was reset'
-                    newer = [(s, q, t) for (s, q, t, _) in self._pending if s > seq]
-                    backlog = max(self.MIN_SNAPSHOT_BACKLOG, cfg.buffer_size // 4)
-                    snapshot = None
-                    if job.kind == 'fit' and rounds <= 5 and len(newer) > backlog:
-                        snapshot = self._buf.arrays() + (self._seq,)
-                    elif not newer or rounds > 5:
-                        for s, q, t in newer:        # the last few, in the lock
-                            model.update(q, t)
-                        self._swap(job, model)
-                        break
-                if snapshot is not None:
-                    model.fit(snapshot[0], snapshot[1], optimize=False)
-                    seq = snapshot[2]
-                else:
-                    for s, q, t in newer:            # replay outside the lock
-                        model.update(q, t)
-                        seq = s
-                ok, why = provable(model, cfg.passivity)
+                    newer = self._seq != job.seq
+                    Q, T = self._buf.arrays() if newer else (None, None)
+                if newer:
+                    model.fit(Q, T, optimize=False)
+                    ok, why = provable(model, cfg.passivity)
         except Exception as exc:
             ok, why = False, f'{type(exc).__name__}: {exc}'
         dt = time.perf_counter() - t0
@@ -166,10 +153,15 @@ class JobRunner:
                 return False, 'discarded: the estimator was reset'
             self._pending.clear()
             if job.kind == 'recertify':
+                if ok and self._model is job.source:
+                    self._swap(job, model)
                 h.recertifications += int(ok)
                 if not ok:
                     h.last_refit_error = f'recertification failed: {why}'
                 return ok, (f'recertified in {dt:.3f} s' if ok else h.last_refit_error)
+            if ok:
+                self._swap(job, model)
+                self._fresh = 0
             if not ok and why.startswith('sanity check') and 'samples that arrived' not in why:
                 h.refits_rejected += 1
             if ok:
@@ -196,11 +188,9 @@ class JobRunner:
         """
         Compare the candidate with the current model on the samples it has not seen.
 
-        These are the samples that arrived while it was fitted (none in sync mode). The
-        incumbent answered each of them before learning it; the candidate is given the same
-        chance: it answers each sample, then learns it (the replay the swap needs anyway).
-        Both errors are thus one step ahead. Returns (ok, reason, seq of the last sample the
-        candidate learned).
+        These are the samples that arrived while it was fitted (none in sync mode), answered by
+        the incumbent before it absorbed them and by the candidate, which has not seen them
+        either. Returns (ok, reason, seq of the last of them).
         """
         with self._lock:
             newer = [(s, q, t, b) for (s, q, t, b) in self._pending if s > seq]
@@ -208,13 +198,13 @@ class JobRunner:
             return True, '', seq
         e_new, e_old, T = [], [], []
         try:
-            for s, q, t, b in newer:
-                if b is not None:
-                    e_new.append(model.predict(q[None, :])[0] - t)
-                    e_old.append(b - t)
-                    T.append(t)
-                model.update(q, t)
-                seq = s
+            Qn = np.array([q for _, q, _, b in newer if b is not None])
+            P = model.predict(Qn)
+            for (s, q, t, b), p in zip([x for x in newer if x[3] is not None], P):
+                e_new.append(p - t)
+                e_old.append(b - t)
+                T.append(t)
+            seq = newer[-1][0]
         except Exception as exc:          # noqa: BLE001 - a broken candidate is caught later
             return True, f'held-out check skipped: {exc}', seq
         T = np.array(T)

@@ -33,6 +33,7 @@ from dgp_ros.dynamics import AccelFilter, FrictionResidual, make_inverse_dynamic
 from dgp_ros.gp import load_model, make_model
 from dgp_ros.gp.means import make_mean
 
+from .absorb import Absorber
 from .config import check_model_path, EstimatorConfig
 from .health import LearnerHealth, LearnerReport, POWER_WINDOW
 from .jobs import JobRunner
@@ -50,7 +51,7 @@ STRUCTURAL = ('model', 'passivity', 'prior', 'bias', 'buffer_size', 'joints',
 FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints')
 
 
-class Learner(JobRunner, LearnerReport):
+class Learner(Absorber, JobRunner, LearnerReport):
     """
     Online learning of a D-GP from a stream of measurements (module docstring).
 
@@ -72,6 +73,8 @@ class Learner(JobRunner, LearnerReport):
         self._loader = model_loader or load_model
         self._lock = threading.RLock()
         self._thread: Optional[threading.Thread] = None
+        self._absorber: Optional[threading.Thread] = None
+        self._absorb_wanted = threading.Event()
         self._generation = 0
         self.load_error = ''
         self._inverse = _inverse_dynamics(self.config)
@@ -92,6 +95,9 @@ class Learner(JobRunner, LearnerReport):
         self._buf: Optional[Buffer] = None
         self._selector = Selector()
         self._seq = 0                     # samples ever added (orders the catch-up)
+        self._fresh = 0                   # samples added since the model last absorbed them
+        self._absorbed_at = 0.0           # perf_counter() at the end of the last absorb
+        self._absorb_cost = 0.0           # wall seconds of the last absorb
         # (seq, qd, tau, answer before learning) added while a refit runs; only the newest
         # buffer_size can survive the model's window, so older ones are dropped here
         self._pending: deque = deque(maxlen=self.config.buffer_size)
@@ -189,18 +195,24 @@ class Learner(JobRunner, LearnerReport):
             self._last_t = t
             added, residuals = self._learn(t, qd, tau, q)
             job = self._next_job(t)
+            absorb = job is None and self._absorb_due()
         if job is not None:
             self._start(job)
+        elif absorb:
+            self._absorb_soon()
         return added, residuals
 
     def poll(self) -> None:
-        """Start a job that became due without a new sample (a refit outgrown by its backlog)."""
+        """Do what became due without a new sample: a job, or absorbing the last samples."""
         with self._lock:
             if self._last_t is None:
                 return
             job = self._next_job(self._last_t)
+            absorb = job is None and self._absorb_due()
         if job is not None:
             self._start(job)
+        elif absorb:
+            self._absorb_soon()
 
     def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q) -> Tuple[bool, list]:
         """Offer the sample for learning (rate limit; the residual front end if any)."""
@@ -241,7 +253,9 @@ class Learner(JobRunner, LearnerReport):
         self._buf.append(qd, target)
         self._selector.additions += 1
         self._seq += 1
-        self._version += 1
+        self._fresh += 1
+        if self._model is None:
+            self._version += 1                  # the prior the answers come from may change
         h.samples_added += 1
         if self.refit_running():
             # the incumbent's answer before it learns the sample: the fair opponent of a
@@ -253,12 +267,6 @@ class Learner(JobRunner, LearnerReport):
                 except Exception:       # noqa: BLE001 - then the sample only serves the replay
                     before = None
             self._pending.append((self._seq, qd.copy(), target.copy(), before))
-        if self._model is not None:
-            try:
-                self._model.update(qd, target)
-            except Exception as exc:  # a model that cannot take the sample: refit from buffer
-                h.last_refit_error = f'update failed: {exc}'
-                self._refit_requested = True
         return True
 
     # ------------------------------------------------------------------ snapshots

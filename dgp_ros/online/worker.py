@@ -42,6 +42,7 @@ class RefitJob:
     hyper: Optional[dict] = None
     warm: bool = False
     model: object = None
+    source: object = None       # 'recertify': the served model ``model`` is a copy of
 
 
 @dataclass
@@ -84,7 +85,7 @@ def provable(model, passivity: str) -> Tuple[bool, str]:
 BOUND_FACTOR = 10.0
 
 
-def sane(model, Q: np.ndarray, T: np.ndarray, rng=None) -> Tuple[bool, str]:
+def sane(model, Q: np.ndarray, T: np.ndarray, rng=None, probes: int = 2000) -> Tuple[bool, str]:
     """
     Check that a candidate's estimates are finite and bounded.
 
@@ -96,7 +97,7 @@ def sane(model, Q: np.ndarray, T: np.ndarray, rng=None) -> Tuple[bool, str]:
     rng = np.random.default_rng(0) if rng is None else rng
     lo, hi = Q.min(axis=0), Q.max(axis=0)
     c, w = 0.5 * (lo + hi), 0.75 * (hi - lo)
-    probe = np.vstack([Q, rng.uniform(c - w, c + w, (2000, Q.shape[1]))])
+    probe = np.vstack([Q, rng.uniform(c - w, c + w, (probes, Q.shape[1]))])
     P = model.predict(probe)
     limit = BOUND_FACTOR * np.maximum(np.abs(T).max(axis=0), 1e-12)
     if not np.all(np.isfinite(P)):

@@ -477,20 +477,24 @@ def test_a_wild_candidate_is_not_swapped_in_and_the_status_says_so():
     finally:
         _Wild.wild = False
     d = est.diagnostics()
-    assert est.model is good and d['refits_rejected'] >= 1
+    # neither the refits nor the absorbed batches of the wild stretch were swapped in
+    assert est.model is good and d['refits_rejected'] >= 1 and d['absorbs_rejected'] >= 1
     assert d['level'] >= WARN and 'model rejected' in d['message'] and \
         'sanity check' in d['message']
 
 
 class _WildOnce(FullDGP):
-    """The second candidate ever built extrapolates wildly; the others are sound."""
+    """The second hyper-parameter fit ever made extrapolates wildly; the others are sound."""
 
-    built = 0
+    fits = 0
+    _wild = False
 
-    def __init__(self, **kw):
-        super().__init__(**kw)
-        _WildOnce.built += 1
-        self._wild = _WildOnce.built == 2
+    def fit(self, Qd, Tau, optimize=True):
+        super().fit(Qd, Tau, optimize)
+        if optimize:                   # a refit job's candidate (absorbs keep the hyper)
+            _WildOnce.fits += 1
+            self._wild = _WildOnce.fits == 2
+        return self
 
     def predict(self, Qs, return_var=False):
         out = super().predict(Qs, return_var)
@@ -502,19 +506,19 @@ class _WildOnce(FullDGP):
 
 def test_a_rejected_candidate_is_retried_on_fresh_samples_without_a_refit_period():
     """refit_period_s = 0: without a retry the first model (10 samples) would serve for good."""
-    _WildOnce.built = 0
+    _WildOnce.fits = 0
     est = OnlineEstimator(cfg(buffer_size=40, min_samples=10, refit_period_s=0.0,
                               optimize_every_n_refits=0),
                           model_factory=lambda kind, **kw: _WildOnce(**kw))
     feed(est, 10)
-    first = est.model
-    assert first is not None
+    assert est.model is not None and _WildOnce.fits == 1
     feed(est, 10, t0=1.0, seed=1)                 # 20 buffered: hyper-parameters outgrown
     d = est.diagnostics()
-    assert d['refits_rejected'] == 1 and est.model is first, d
+    assert d['refits_rejected'] == 1 and d['hyper_samples'] == 10, d
+    assert not est.model._wild                    # the rejected one does not serve
     feed(est, 9, t0=2.0, seed=2)                  # the retry waits for 10 fresh samples
-    assert est.model is first and _WildOnce.built == 2
+    assert _WildOnce.fits == 2 and est.diagnostics()['hyper_samples'] == 10
     feed(est, 1, t0=3.0, seed=3)
     d = est.diagnostics()
-    assert _WildOnce.built == 3 and est.model is not first and d['refits_ok'] == 2, d
+    assert _WildOnce.fits == 3 and d['hyper_samples'] == 30 and d['refits_ok'] == 2, d
     assert 'model rejected' not in d['message'] and d['consecutive_refit_failures'] == 0
