@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 
 from .copositive import max_scale, norm_margin
-from .passivity import Certificate, PassivityPolicy
+from .policy import Certificate, PassivityPolicy
 from .repair import diagonal_rows, find_violations, power_rows, repair
 from .verify import verify_box
 from .verify import verify_diagonal
@@ -378,7 +378,7 @@ class CertifiedPolicy(PassivityPolicy):
         return self.scale * _blend(Q, self.domain)
 
     def finalize(self, post, Q, tau, D):
-        return self._stale_fallback(post, Q, tau, D)
+        return self._project(Q, tau, D) if self.cert is not None and self.cert.stale else (tau, D)
 
     # ---------------------------------------------------------------- persistence
     def state(self):

@@ -18,13 +18,15 @@ from typing import Optional
 import numpy as np
 
 from ._validation import as_matrix, as_pair
-from .hyper import apply_fixed_noise, initial_hyper, learn_hyper, scales
+from .hyper import apply_fixed_noise, hyper_from_params, initial_hyper, learn_hyper, scales
 from .kernels import KINDS, Structure
 from .means import make_mean, PRIORS
-from .passivity import Certificate, check_mode, policy_class, PolicyOptions
-from .posterior import Hyper, Posterior
+from .passivity import check_mode, policy_class
+from .persistence import read_model, save_model
+from .policy import Certificate, PolicyOptions
+from .posterior import Posterior
 
-__all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class']
+__all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class', 'load_model']
 
 
 #: query rows per chunk times training samples: bounds the (rows, n) kernel temporaries of a
@@ -403,42 +405,16 @@ class _DGP:
     # ------------------------------------------------------------------ persistence
     def save(self, path) -> None:
         """Write the model to ``path`` atomically (``persistence``: npz + JSON header)."""
-        from .persistence import save_model
         self._check_fitted()
         save_model(self, path)
 
     @classmethod
     def load(cls, path):
         """Read a model written by ``save``; ValueError for anything else (``persistence``)."""
-        from .persistence import load_model
         model = load_model(path)
         if cls is not _DGP and not isinstance(model, cls):
             raise ValueError(f'{path}: holds a {type(model).__name__}, not a {cls.__name__}')
         return model
-
-
-def hyper_from_params(d: dict, kind: str):
-    """(Hyper, PriorMean) from a ``hyperparams_`` dict; ValueError when malformed."""
-    from .means import ViscousMean, mean_from_dict
-    if not isinstance(d, dict):
-        raise ValueError("hyperparams must be a dict (a fitted model's hyperparams_)")
-    hp = Hyper.from_dict(d)
-    m = d.get('mean')
-    if isinstance(m, dict):
-        mean = mean_from_dict(m, hp.sx.size)
-    else:                       # a bare m_d vector (tests, hand-written starts)
-        if m is None:
-            raise ValueError("hyperparams is missing ['mean']")
-        mean = make_mean('viscous', kind)
-        arr = np.asarray(m, float)
-        if isinstance(mean, ViscousMean):
-            mean.m_d = arr
-        else:
-            mean.value = arr
-        mean.bias = np.zeros(hp.sx.size)
-    Structure.of(kind, hp.sx.size)
-    Hyper.from_dict(d, Structure.of(kind, hp.sx.size))
-    return hp, mean
 
 
 class FullDGP(_DGP):
@@ -476,3 +452,20 @@ def model_class(kind: str):
 def make_model(kind: str, **kw) -> _DGP:
     """Construct a model by name: 'full' | 'diag' | 'ard'."""
     return model_class(kind)(**kw)
+
+
+def load_model(path) -> _DGP:
+    """
+    Load any model written by ``save``; ValueError with a reason for anything else.
+
+    ``persistence.read_model`` validates the file and restores the posterior; the estimator is
+    built here, and its policy re-derives the certificate (never taken from the file).
+    """
+    f = read_model(path)
+    try:
+        model = model_class(f.kind)(**f.params)
+        model._restore(f.posterior, f.policy, f.policy_arrays, f.certificate)
+    except Exception as exc:      # a crafted header: wrong names, types or policy state
+        raise ValueError(f'{path}: malformed model file ({type(exc).__name__}: {exc})') \
+            from None
+    return model
