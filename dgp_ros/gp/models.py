@@ -338,24 +338,14 @@ class _DGP:
         Passive as the policy guarantees (``passivity``); the variance is the GP posterior
         variance (noise-free), force units squared. The bias is not included (``bias_``).
         """
-        p = self._check_fitted()
-        Q = as_matrix(Qs, 'Qs', p.N)
-
-        def part(Qc):
-            tau, var = p.predict(Qc, self.policy_.weight(Qc), return_var, p.element_kernels(Qc))
-            return self.policy_.finalize(p, Qc, tau, None)[0], var
-        tau, var = _in_chunks(Q, p.n, part)
+        tau, var, _ = self._answers(Qs, return_var, False)
         return (tau, var) if return_var else tau
 
     def damping_matrix(self, Qs) -> np.ndarray:
         """Posterior damping matrix D(q), (k, N, N), with ``predict(q) = D(q) q``."""
-        p = self._check_fitted()
-        Q = as_matrix(Qs, 'Qs', p.N)
-
-        def part(Qc):
-            D = p.damping(Qc, self.policy_.weight(Qc))
-            return (self.policy_.finalize(p, Qc, np.einsum('kij,kj->ki', D, Qc), D)[1],)
-        return _in_chunks(Q, p.n, part)[0]
+        if not self._check_fitted().structure.has_damping:
+            raise NotImplementedError('ArdGP models the force directly and has no damping matrix')
+        return self._answers(Qs, False, True, tau_from_predict=False)[2]
 
     def predict_with_damping(self, Qs, return_var: bool = True, return_damping: bool = True):
         """
@@ -366,16 +356,31 @@ class _DGP:
         var None without ``return_var`` (the online estimator skips what nobody subscribes to:
         together they are about 60 % of a 7-joint answer).
         """
+        return self._answers(Qs, return_var, return_damping)
+
+    def _answers(self, Qs, want_var: bool, want_D: bool, tau_from_predict: bool = True) -> tuple:
+        """
+        Return (tau, var or None, D or None) at Qs, through the policy, in row chunks.
+
+        D is built when asked for or when the policy's ``finalize`` needs it (``needs_damping``);
+        tau comes from the posterior's own prediction (bit-identical to ``predict``) unless D is
+        at hand and that does not matter.
+        """
         p = self._check_fitted()
         Q = as_matrix(Qs, 'Qs', p.N)
+        pol = self.policy_
+        need_D = p.structure.has_damping and (want_D or pol.needs_damping)
 
         def part(Qc):
             Kel = p.element_kernels(Qc)
-            w = self.policy_.weight(Qc)
-            tau, var = p.predict(Qc, w, return_var, Kel)
-            D = p.damping(Qc, w, Kel) if p.structure.has_damping and return_damping else None
-            tau, D = self.policy_.finalize(p, Qc, tau, D)
-            return tau, var, D
+            w = pol.weight(Qc)
+            D = p.damping(Qc, w, Kel) if need_D else None
+            if D is not None and not want_var and (pol.needs_damping or not tau_from_predict):
+                tau, var = np.einsum('kij,kj->ki', D, Qc), None
+            else:
+                tau, var = p.predict(Qc, w, want_var, Kel)
+            tau, D = pol.finalize(p, Qc, tau, D)
+            return tau, var, D if want_D else None
         return _in_chunks(Q, p.n, part)
 
     # ------------------------------------------------------------------ passivity
@@ -433,9 +438,6 @@ class ArdGP(_DGP):
     """Baseline: an independent SE-ARD GP per output on ``q`` (constant prior mean)."""
 
     _kind = 'ard'
-
-    def damping_matrix(self, Qs):
-        raise NotImplementedError('ArdGP models the force directly and has no damping matrix')
 
 
 _KINDS = {'full': FullDGP, 'diag': DiagDGP, 'ard': ArdGP}

@@ -172,6 +172,8 @@ class PassivityPolicy:
     certifies = False
     guarantee = 'none'
     needs_rkhs = False          # the fit computes the RKHS norms of the correction for it
+    #: ``finalize`` needs the damping matrix of every answer (the model computes it)
+    needs_damping = False
 
     def __init__(self, options: PolicyOptions):
         self.options = options
