@@ -52,7 +52,8 @@ class _DGP:
     ----------
     passivity : str
         A mode of ``passivity.PASSIVITY_MODES`` ('none' | 'paper' | 'certified' | 'projected';
-        docs/PASSIVITY.md says what each proves).
+        docs/PASSIVITY.md says what each proves). Default 'certified' (ArdGP: 'none', it has no
+        damping matrix to certify).
     noise : float or (N,) array or None
         Fixed noise standard deviation per output, force units; None = learn it.
     window : int or None
@@ -91,7 +92,7 @@ class _DGP:
 
     _kind = ''
 
-    def __init__(self, passivity: str = 'none', noise=None, window: Optional[int] = None,
+    def __init__(self, passivity: str = 'certified', noise=None, window: Optional[int] = None,
                  n_restarts: int = 2, max_opt_samples: int = 300, domain_margin: float = 0.1,
                  blend_width: float = 0.1, max_boxes: int = 50000, projection_weights=None,
                  hyperparams: Optional[dict] = None, random_state: int = 0,
@@ -116,7 +117,7 @@ class _DGP:
     # ------------------------------------------------------------------ parameters
     @classmethod
     def _param_names(cls):
-        sig = inspect.signature(cls.__init__)
+        sig = inspect.signature(_DGP.__init__)
         return [p for p in sig.parameters if p != 'self']
 
     def get_params(self, deep: bool = True) -> dict:
@@ -438,6 +439,9 @@ class ArdGP(_DGP):
     """Baseline: an independent SE-ARD GP per output on ``q`` (constant prior mean)."""
 
     _kind = 'ard'
+
+    def __init__(self, passivity: str = 'none', **kw):
+        super().__init__(passivity=passivity, **kw)
 
 
 _KINDS = {'full': FullDGP, 'diag': DiagDGP, 'ard': ArdGP}

@@ -64,7 +64,7 @@ def _arm(n=200, N=7, seed=2):
 @pytest.mark.parametrize('cls', [FullDGP, DiagDGP])
 def test_seven_joints_are_psd_everywhere_and_unchanged_where_they_were(cls, tmp_path):
     Q, T = _arm()
-    base = cls(n_restarts=0, max_opt_samples=120).fit(Q, T)
+    base = cls(passivity='none', n_restarts=0, max_opt_samples=120).fit(Q, T)
     m = cls(passivity='certified', hyperparams=base.hyperparams_).fit(Q, T, optimize=False)
     c = m.certificate()
     assert c.certified and c.method == 'psd-clip' and c.guarantee == 'psd' and c.domain is None
@@ -97,3 +97,15 @@ def test_seven_joints_are_psd_everywhere_and_unchanged_where_they_were(cls, tmp_
     r = cls.load(tmp_path / 'm.npz')
     assert r.certificate().certified and r.certificate().method == 'psd-clip'
     np.testing.assert_array_equal(r.predict(inside[:5000]), m.predict(inside[:5000]))
+
+
+def test_certified_is_the_library_default_for_damping_models():
+    from dgp_ros.gp import ArdGP
+    assert FullDGP().passivity == 'certified' and DiagDGP().passivity == 'certified'
+    a = ArdGP()
+    assert a.passivity == 'none'                      # no damping matrix to certify
+    assert set(a.get_params()) == set(FullDGP().get_params())
+    assert ArdGP(**a.get_params()).get_params() == a.get_params()
+    Q, T = _arm(n=80, N=4)
+    c = FullDGP(n_restarts=0, max_opt_samples=60).fit(Q, T).certificate()
+    assert c.certified and c.guarantee == 'psd'

@@ -54,7 +54,7 @@ def test_certified_repairs_locally_and_stays_close_to_projected():
     rng = np.random.default_rng(1)
     Qt = rng.uniform(-2, 2, (4000, 2))
     truth = Qt * [1.5, 0.8] + 0.3 * np.tanh(Qt / 0.1)
-    base = FullDGP(n_restarts=0).fit(Q, T)
+    base = FullDGP(passivity='none', n_restarts=0).fit(Q, T)
     proj = FullDGP(passivity='projected', hyperparams=base.hyperparams_).fit(Q, T, optimize=False)
     cert = FullDGP(passivity='certified', hyperparams=base.hyperparams_).fit(Q, T,
                                                                              optimize=False)
@@ -88,7 +88,7 @@ def test_counterexamples_beyond_the_kept_box_narrow_the_blend_instead(cls):
     rng = np.random.default_rng(4)
     Q = np.c_[rng.uniform(0, 1, 80), rng.uniform(-1, 1, 80)]
     T = np.c_[(0.3 + 2 * Q[:, 0]) * Q[:, 0], Q[:, 1]] + 0.002 * rng.normal(size=(80, 2))
-    base = cls(n_restarts=0).fit(Q, T)
+    base = cls(passivity='none', n_restarts=0).fit(Q, T)
     lo0 = -0.25                                     # where the default blend would end
     assert base.posterior_.damping(np.array([[lo0, 0.0]]))[0, 0, 0] < 0
     m = cls(passivity='certified', hyperparams=base.hyperparams_).fit(Q, T, optimize=False)
@@ -109,7 +109,7 @@ def test_without_a_proof_every_answer_is_projected():
     rng = np.random.default_rng(6)
     Q = rng.uniform(-1, 1, (60, 2))
     T = -(Q * [1.0, 0.5]) + 0.01 * rng.normal(size=Q.shape)
-    base = FullDGP(n_restarts=0).fit(Q, T)
+    base = FullDGP(passivity='none', n_restarts=0).fit(Q, T)
     hp = base.hyperparams_
     cert = FullDGP(passivity='certified', hyperparams=hp, max_boxes=5000).fit(Q, T,
                                                                               optimize=False)
