@@ -111,7 +111,7 @@ def violations(model, lo, hi, k, seed):
 # ============================================================================ 1. real Panda
 def panda_part(a, path):
     from dgp_ros.gp import make_model
-    d = np.load(os.path.join(path, DATA_FILE))
+    d = np.load(os.path.join(path, DATA_FILE), allow_pickle=False)
     t, qd, tau = d['t'], d['qd'], d['tau_friction_offline']
     tr = t < SPLIT_S
     Qa, Ta, Qh, Th = qd[tr], tau[tr], qd[~tr], tau[~tr]
