@@ -45,10 +45,10 @@ def _extra(p):
 
 
 def panda_dir(arg=None):
-    """Return the real-Panda folder, or None: --data, DGP_PANDA_REAL, the default places."""
-    cands = [arg, os.environ.get('DGP_PANDA_REAL'),
-             os.path.join(C.REPO, '..', 'shared', 'data', 'panda_real'),
-             '/work/shared/data/panda_real']
+    """Return the real-Panda folder or None: --data, else DGP_PANDA_REAL, else the defaults."""
+    given = arg or os.environ.get('DGP_PANDA_REAL')
+    cands = [given] if given else [os.path.join(C.REPO, '..', 'shared', 'data', 'panda_real'),
+                                   '/work/shared/data/panda_real']
     for c in cands:
         if c and os.path.isfile(os.path.join(c, DATA_FILE)):
             return os.path.abspath(c)
