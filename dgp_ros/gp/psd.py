@@ -46,22 +46,24 @@ def psd_clip(D: np.ndarray, delta: float):
     """
     if not delta > 0:
         raise ValueError(f'delta must be positive, got {delta!r}')
-    k, N, _ = D.shape
-    S = 0.5 * (D + np.swapaxes(D, 1, 2))
-    idx = np.arange(N)
-    d = S[:, idx, idx]
-    radius = np.abs(S).sum(axis=2) - np.abs(d)
-    cand = np.flatnonzero(np.any(d - radius < delta, axis=1))
-    touched = np.zeros(k, dtype=bool)
-    if cand.size == 0:
-        return D, touched
+    S = D + D.transpose(0, 2, 1)
+    S *= 0.5
+    d = np.diagonal(S, axis1=1, axis2=2)
+    # Gershgorin: every eigenvalue >= d_n - sum_{m != n} |S_nm| for some n
+    low = (d + np.abs(d) - np.abs(S).sum(axis=2)).min(axis=1)
+    need = low < delta
+    if not need.any():
+        return D, need
+    cand = np.flatnonzero(need)
     lam, V = np.linalg.eigh(S[cand])
     g = smooth_floor(lam, delta)
-    hit = np.any(g > 0.0, axis=1)
-    if not np.any(hit):
+    hit = g.max(axis=1) > 0.0
+    touched = np.zeros(D.shape[0], dtype=bool)
+    if not hit.any():
         return D, touched
     rows = cand[hit]
     out = D.copy()
-    out[rows] += np.einsum('kij,kj,klj->kil', V[hit], g[hit], V[hit])
+    Vh = V[hit]
+    out[rows] += (Vh * g[hit][:, None, :]) @ Vh.transpose(0, 2, 1)
     touched[rows] = True
     return out, touched
