@@ -9,13 +9,15 @@ The posterior mean is linear in its weights ``w = alpha + delta``: at a velocity
     P(z) = z^T D(z) z = z^T M(z) z + sum_m G_m(z) . w_m,
     G_m(z)_i = s(z) sum_{n : (m, n) elements} z_m z_n k_mn(z, x_i) x_{n,i} s_y,m / s_x,n,
 
-with ``s(z)`` the correction weight of the policy (scale and blend). Requiring ``P(z_j) >= eps_j``
-at the counterexamples ``z_j`` is a set of linear inequalities in ``delta``. The change with the
-least norm ``sum_m delta_m^T (K_m + s_eps,m^2 I) delta_m`` (the RKHS norm of the change of the
-mean, regularized by the noise) follows from the dual, a small QP over one multiplier per
-counterexample: ``delta_m = (K_m + s_eps^2 I)^-1 G_m^T lambda``, ``lambda >= 0`` minimizing
-``0.5 lambda^T H lambda - b^T lambda`` with ``H = sum_m G_m (K_m + s_eps^2 I)^-1 G_m^T``. So the
-mean changes only near the counterexamples, by kernel bumps centred on the training points.
+with ``s(z)`` the correction weight of the policy (the certified policy cuts the unblended
+posterior: ``s = 1``). Requiring ``P(z_j) >= eps_j`` at the counterexamples ``z_j`` is a set of
+linear inequalities in ``delta``. The change with the least ``sum_m |A_m delta_m|^2``
+(``A_m = K_m + s_eps,m^2 I``: the change of the mean at the training velocities, in least
+squares) follows from the dual, a small QP over one multiplier per counterexample:
+``delta_m = A_m^-2 G_m^T lambda``, ``lambda >= 0`` minimizing ``0.5 lambda^T H lambda -
+b^T lambda`` with ``H = sum_m G_m A_m^-2 G_m^T``. So the mean changes only near the
+counterexamples, by kernel bumps centred on the training points. ``PowerProbe`` keeps the rows
+of a fixed set of velocities, so repeated rounds cost matrix-vector products, not kernels.
 """
 from __future__ import annotations
 
