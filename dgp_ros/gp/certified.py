@@ -84,6 +84,8 @@ class CertifiedPolicy(PassivityPolicy):
     #: up to this many velocities the joint branch-and-bound proves passivity on a domain;
     #: above it the smooth eigenvalue floor makes D PSD
     JOINT_MAX_N = 3
+    #: boxes of the first, unrepaired proof attempt (before the probe set is built)
+    FIRST_BOXES = 1000
     #: halvings of the blend zone on a side where counterexamples lie beyond the kept box
     BLEND_HALVINGS = 4
     #: smoothing width of the eigenvalue floor, relative to the largest s_y / s_x (the scale of
@@ -260,8 +262,9 @@ class CertifiedPolicy(PassivityPolicy):
         """
         Repair counterexamples on ``dom`` locally, then prove by branch-and-bound; repeat.
 
-        A fixed probe set of the outer box (grid with its corners, uniform, near the data; its
-        kernel rows built once) is checked before each proof. Each round adds its most negative
+        A proof with a small budget comes first (most fits need nothing else). Then a fixed probe
+        set of the outer box (grid with its corners, uniform, near the data; its kernel rows built
+        once) is checked before each proof. Each round adds its most negative
         powers and the verifier's last witness to the cutting planes, finds the least change of
         the weights that makes every cut's power at least 5 % of the prior's there
         (``repair.repair``) and runs the proof again. The cuts are on the *unblended* posterior,
@@ -270,13 +273,20 @@ class CertifiedPolicy(PassivityPolicy):
         weights are left as they were.
         """
         (ilo, ihi), (olo, ohi) = dom
+        # most fits are proven at once: try that (small budget) before building the probe
+        res = verify_box(post.correction_terms(self.scale), olo, ohi,
+                         max_boxes=min(self.FIRST_BOXES, self.options.max_boxes), leaves=leaves)
+        if res.ok:
+            self._outer = (olo, ohi)
+            return res, {}
         old = None if post.delta is None else post.delta.copy()
         Z = probe_points(post, olo, ohi, np.random.default_rng(0))
         w = np.full(len(Z), self.scale)
         probe = PowerProbe(post, Z, w)
         before = None
         cut_p0, cut_G = np.zeros(0), [np.zeros((0, post.n)) for _ in range(post.N)]
-        res, witness, repairs, halvings = None, None, 0, 0
+        witness, repairs, halvings = res.witness, 0, 0
+        res = None
         for _ in range(self.REPAIR_ROUNDS + self.BLEND_HALVINGS + 1):
             P = probe.power(post.weights)
             P[np.any((Z < olo) | (Z > ohi), axis=1)] = np.inf     # outside the proof's box
