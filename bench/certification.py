@@ -186,7 +186,7 @@ def a320_part(a):
                     r = {'n': n, 'seed': seed, 'kind': kind, 'declared': declared,
                          'ratio': C.nmse(m.predict(Qt), Tt) / nb, 't': t, 't_base': t_base,
                          'cert': m.certificate(), 'nmse_base': nb}
-                    if n == ns[-1] and seed == 0:
+                    if n == ns[-1] and seed == 0 and declared:
                         C.log(f'A320 n={n} {kind} declared={declared}: {k_pass} velocities x 2')
                         r['viol'] = violations(m, Q.min(axis=0), Q.max(axis=0), k_pass, 2)
                         r['k'] = k_pass
