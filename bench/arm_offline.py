@@ -123,8 +123,6 @@ def main(argv=None) -> int:
     for kind in ('full', 'diag'):
         hp = fitted[kind].hyperparams_
         for mode in MODES:
-            if a.quick and (kind, mode) == ('full', 'certified'):
-                continue            # a minute of branch and bound: full mode only
             C.log(f'{NAME}: {kind} {mode}: fit at fixed hyper-parameters (and certify)')
             m, t = timed(lambda: make_model(kind, passivity=mode, prior=prior, bias=bias,
                                             hyperparams=hp).fit(Q, T, optimize=False))

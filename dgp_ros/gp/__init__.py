@@ -11,12 +11,13 @@ proof), ``persistence`` (model files), ``models`` (the estimators).
 """
 from .kernels import KINDS, se_ard, se_bound
 from .means import prior_mean_diag, PRIORS
-from .models import ArdGP, DiagDGP, FullDGP, make_model, model_class
-from .passivity import (Certificate, copositivity_margin, modes_for, passive_tolerance,
-                        PASSIVITY_MODES, POLICIES, policy_class, project_passive)
-from .persistence import FORMAT_VERSION, load_model
+from .models import ArdGP, DiagDGP, FullDGP, load_model, make_model, model_class
+from .passivity import (copositivity_margin, modes_for, PASSIVITY_MODES, POLICIES,
+                        policy_class)
+from .persistence import FORMAT_VERSION
+from .policy import Certificate, GUARANTEES, passive_tolerance, project_passive
 
 __all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class', 'load_model',
            'prior_mean_diag', 'Certificate', 'copositivity_margin', 'project_passive',
            'passive_tolerance', 'se_ard', 'se_bound', 'FORMAT_VERSION', 'KINDS', 'PRIORS',
-           'PASSIVITY_MODES', 'POLICIES', 'modes_for', 'policy_class']
+           'PASSIVITY_MODES', 'POLICIES', 'modes_for', 'policy_class', 'GUARANTEES']

@@ -1,20 +1,29 @@
 """
-The ``certified`` passivity policy: a structural certificate of the posterior ``D_hat`` itself.
+The ``certified`` passivity policy: a certificate of the published damping matrix ``D`` itself.
 
-Three proofs, tried in order (docs/PASSIVITY.md):
+In order (docs/PASSIVITY.md):
 
-1. ``a-posteriori-bound`` (global): with the weights known, ``|C_mn(q)| <= B_mn`` for every q
-   (``Posterior.l1_bound``); ``diag(m_inf) - B`` copositive proves passivity on all of R^N.
-2. ``domain-bnb+blend``: branch-and-bound (``verify.verify_box``) proves ``q^T D_hat(q) q >= 0``
-   on an outer box ``Omega'`` around the data (and the declared operating domain); the published
-   model is ``M(q) + w(q) C(q)`` with a C2 blend ``w`` that is 1 on the inner box ``Omega`` and 0
-   outside ``Omega'``, a convex combination of two passive models, so passive everywhere.
-3. If (2) fails, smaller domains, then a smaller correction scale ``s`` (bisection between the
-   largest scale (1) proves and 1).
+1. ``a-posteriori-bound`` (any N, global, PSD): with the weights known, ``|C_mn(q)| <= B_mn`` for
+   every q (``Posterior.l1_bound``); ``diag(m_inf) - B`` copositive proves that the symmetric
+   part of ``D(q)`` is PSD for every q in R^N. Nothing is changed.
+2. Up to ``JOINT_MAX_N`` velocities, ``domain-bnb+blend`` (passive on a domain): branch-and-bound
+   (``verify.verify_box``) proves ``q^T D(q) q >= 0`` on an outer box ``Omega'`` around the data
+   (and a declared operating domain). Counterexamples are repaired *locally* first: the least
+   change of the weights that makes the power non-negative at them (cutting planes,
+   ``repair``), with the kernel rows of a fixed probe set built once for all rounds. The
+   published model is ``M(q) + w(q) C(q)`` with a C2 blend ``w`` that is 1 on the inner box
+   ``Omega`` and 0 outside ``Omega'``: a convex combination of two passive models. If no proof is
+   found within the budget, nothing is certified and every answer is projected onto
+   ``q^T tau >= 0`` (``guarantee`` 'pointwise', the ``projected`` mode's answers).
+3. Above ``JOINT_MAX_N`` velocities, ``psd-clip`` (PSD everywhere): the symmetric part of
+   ``D(q)`` gets the smooth eigenvalue floor of ``psd`` at the queries where it is not positive
+   definite, and is left exactly as fitted where it is. (A branch-and-bound over a 7-D box
+   with 49 element GPs does not finish in minutes, and diagonal dominance with global
+   off-diagonal bounds shrank the whole correction: docs/PASSIVITY.md.)
 
-After ``update`` only the O(n) form of (1) is re-checked; if it fails the certificate becomes
-*stale* (estimates stay passive pointwise) until ``recertify`` re-runs (2), which the online
-estimator does only in its refit worker.
+After ``update`` only the O(n) form of (1) is re-checked. A ``psd-clip`` certificate holds for any
+weights, so it never goes stale; a domain certificate becomes *stale* (answers projected) until
+``recertify`` re-runs (2), which the online estimator does only in its refit worker.
 """
 from __future__ import annotations
 
@@ -23,11 +32,11 @@ from typing import Optional
 
 import numpy as np
 
-from .copositive import max_scale, norm_margin
-from .passivity import Certificate, PassivityPolicy
-from .repair import diagonal_rows, find_violations, power_rows, repair
-from .verify import verify_box
-from .verify import verify_diagonal
+from .copositive import norm_margin
+from .policy import Certificate, PassivityPolicy
+from .psd import psd_clip
+from .repair import most_negative, power_rows, PowerProbe, probe_points, repair
+from .verify import BoxResult, verify_box
 
 __all__ = ['CertifiedPolicy']
 
@@ -61,23 +70,38 @@ class CertifiedPolicy(PassivityPolicy):
     """See the module docstring."""
 
     name = 'certified'
-    summary = ('the posterior damping matrix itself proven passive (global bound, else '
-               'branch-and-bound on a box around the data blended to the prior outside)')
+    summary = ('the damping matrix itself proven passive: a global bound, else (up to 3 '
+               'velocities) branch-and-bound on a box around the data after local repairs, '
+               'else (more velocities) made positive semi-definite where it is not')
     kinds = ('full', 'diag')
     certifies = True
+    guarantee = 'psd'
     needs_rkhs = True
-    #: cutting-plane rounds of the repair before the correction is shrunk instead
-    REPAIR_ROUNDS = 4
-    #: above this many velocities the element-wise proof (diagonal dominance) replaces the joint
-    #: branch-and-bound, whose boxes must be small in every dimension at once
+    #: cutting-plane rounds of the local repair before the proof is given up (answers projected)
+    REPAIR_ROUNDS = 6
+    #: counterexamples added per round (the most negative power first)
+    CUTS_PER_ROUND = 100
+    #: up to this many velocities the joint branch-and-bound proves passivity on a domain;
+    #: above it the smooth eigenvalue floor makes D PSD
     JOINT_MAX_N = 3
+    #: boxes of the first, unrepaired proof attempt (before the probe set is built)
+    FIRST_BOXES = 1000
+    #: halvings of the blend zone on a side where counterexamples lie beyond the kept box
+    BLEND_HALVINGS = 4
+    #: smoothing width of the eigenvalue floor, relative to the largest s_y / s_x (the scale of
+    #: the GP correction, damping units)
+    PSD_DELTA = 1e-3
+    #: training velocities at most used for the psd-clip's diagnostics
+    DIAG_SAMPLES = 200
 
     def __init__(self, options):
         super().__init__(options)
-        self.scale = 1.0
+        self.scale = 1.0            # correction scale (1; below 1 only in files of older fits)
         self.domain = None          # ((ilo, ihi), (olo, ohi)) model units
         self.leaves = None          # proven partition of the outer box, reused by recertify
         self.data_box = None
+        self.blend_on = False       # the published correction is blended to the domain
+        self.clip = False           # the smooth eigenvalue floor is applied to every answer
 
     # ---------------------------------------------------------------- domains
     def _hull(self, box):
@@ -90,295 +114,263 @@ class CertifiedPolicy(PassivityPolicy):
         return lo, hi, np.maximum(hi - lo, box[2])
 
     def _candidate_domains(self):
+        """
+        Return the domains to prove, in order.
+
+        With a declared operating domain: its hull with the data box (the user says where the
+        system operates: no margin beyond it), then the data box with the margin; else the data
+        box with the margin. Each blends to the prior over ``blend_width`` of its range.
+        """
         o = self.options
-        boxes = [self._hull(self.data_box)]
+        out = []
         if o.operating_domain is not None:
-            boxes.append(self.data_box)
-        return [_make_domain(b, f_m, f_b) for b in boxes for f_m, f_b in
-                ((o.domain_margin, o.blend_width), (0.5 * o.domain_margin, 0.5 * o.blend_width),
-                 (0.0, 0.25 * o.blend_width))]
+            out.append(_make_domain(self._hull(self.data_box), 0.0, o.blend_width))
+        out.append(_make_domain(self.data_box, o.domain_margin, o.blend_width))
+        return out
+
+    def _delta(self, post) -> float:
+        """Smoothing width of the eigenvalue floor, damping units."""
+        hp = post.hyper
+        return self.PSD_DELTA * float(np.max(hp.sy / hp.sx))
 
     # ---------------------------------------------------------------- life cycle
     def enforce(self, post):
         t0 = time.perf_counter()
         self.data_box = _box_of(post.Qd)
-        o = self.options
-        self.domain = _make_domain(self._hull(self.data_box), o.domain_margin, o.blend_width)
-        self.scale = 1.0
-        self.leaves = None
-        m_inf = post.mean.diag_inf()
-        m = norm_margin(m_inf, post.l1_bound(rkhs=True))
-        if m >= 0:
-            self.cert = Certificate(True, float(m), 'a-posteriori-bound', None, 1.0)
-        else:
-            self._prove(post, self._candidate_domains(), start=1.0, reuse=False)
+        self.domain = self._candidate_domains()[0]
+        self.scale, self.leaves, self.blend_on, self.clip = 1.0, None, False, False
+        if not self._global(post, rkhs=True):
+            if post.N > self.JOINT_MAX_N:
+                self._clip_on(post, diagnostics=True)
+            else:
+                self._prove(post, self._candidate_domains(), reuse=False)
         self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
         return post
 
+    def _global(self, post, rkhs: bool) -> bool:
+        """Certificate (1); True when it holds (then nothing is blended or clipped)."""
+        m = norm_margin(post.mean.diag_inf(), self.scale * post.l1_bound(rkhs=rkhs))
+        if m < 0:
+            return False
+        self.leaves, self.blend_on, self.clip = None, False, False
+        self.cert = Certificate(True, float(m), 'a-posteriori-bound', None, self.scale,
+                                guarantee='psd')
+        return True
+
+    def _clip_on(self, post, diagnostics: bool) -> None:
+        """Certificate (3): the smooth eigenvalue floor on every answer (module docstring)."""
+        self.leaves, self.blend_on, self.clip = None, False, True
+        delta = self._delta(post)
+        details = {'delta': delta}
+        if diagnostics:
+            Q = post.Qd
+            if len(Q) > self.DIAG_SAMPLES:
+                Q = Q[np.linspace(0, len(Q) - 1, self.DIAG_SAMPLES).round().astype(int)]
+            D = post.damping(Q, np.full(len(Q), self.scale))
+            Dp, touched = psd_clip(D, delta)
+            change = np.abs(np.einsum('kij,kj->ki', Dp - D, Q)).max(axis=0)
+            details.update(touched_fraction_of_samples=float(touched.mean()),
+                           max_change_at_samples=change.tolist())
+        self.cert = Certificate(True, 0.0, 'psd-clip', None, self.scale, details,
+                                guarantee='psd')
+
     def after_update(self, post, Q_new):
         """
-        Check the O(n) global bound at the current scale.
+        Check the O(n) global bound.
 
-        Else grow the domain to the data and mark the certificate stale.
+        Else: above ``JOINT_MAX_N`` the eigenvalue floor (valid for any weights); up to it, grow
+        the domain to the data and mark the certificate stale (answers projected).
         """
         t0 = time.perf_counter()
-        m = norm_margin(post.mean.diag_inf(), self.scale * post.l1_bound(rkhs=False))
-        if m >= 0:
-            self.leaves = None
-            self.cert = Certificate(True, float(m), 'a-posteriori-bound', None, self.scale,
-                                    {'seconds': time.perf_counter() - t0})
+        if self._global(post, rkhs=False):
+            pass
+        elif post.N > self.JOINT_MAX_N:
+            self._clip_on(post, diagnostics=False)
+        else:
+            (ilo, ihi), _ = self.domain
+            Qd = post.Qd
+            if not np.all((Qd >= ilo) & (Qd <= ihi)):
+                # samples outside the verified box would only ever see the prior: grow it
+                self.data_box = _box_of(Qd)
+                self.domain = self._candidate_domains()[0]
+                self.leaves = None
+            if not self.cert.stale:
+                self.cert = self.cert.made_stale()
             return
-        (ilo, ihi), _ = self.domain
-        Qd = post.Qd
-        if not np.all((Qd >= ilo) & (Qd <= ihi)):
-            # samples outside the verified box would only ever see the prior: grow the domain
-            self.data_box = _box_of(Qd)
-            o = self.options
-            self.domain = _make_domain(self._hull(self.data_box), o.domain_margin,
-                                       o.blend_width)
-            self.leaves = None
-        if not self.cert.stale:
-            self.cert = Certificate(False, self.cert.margin, self.cert.method, self.cert.domain,
-                                    self.cert.correction_scale, dict(self.cert.details), True)
+        self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
 
     def recertify(self, post) -> Certificate:
         """
         Re-prove a stale certificate.
 
-        A global certificate is first re-checked with the (tighter than per-update) RKHS bound; a
-        domain certificate by branch-and-bound on its domain, starting from the last proven
-        partition.
+        First the global bound, then branch-and-bound (with repairs) on the current domain,
+        starting from the last proven partition.
         """
         if self.cert is None or not self.cert.stale:
             return self.cert
         t0 = time.perf_counter()
-        m = -np.inf
-        if self.cert.method != 'domain-bnb+blend':
-            m = norm_margin(post.mean.diag_inf(), self.scale * post.l1_bound(rkhs=True))
-        if m >= 0:
-            self.leaves = None
-            self.cert = Certificate(True, float(m), 'a-posteriori-bound', None, self.scale)
-        else:
-            self._prove(post, [self.domain], start=self.scale, reuse=True)
+        if not self._global(post, rkhs=True):
+            self._prove(post, [self.domain], reuse=True)
         self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
         return self.cert
 
     def restore_certificate(self, post, saved):
         """
-        Distrust a loaded certificate.
+        Distrust a loaded certificate: re-derive it.
 
-        It is stale until ``recertify`` proves it again (the saved proof partition is dropped too;
-        the blend keeps the saved domain meanwhile).
+        The global bound and the eigenvalue floor are re-established at once; a domain proof is
+        stale until ``recertify`` runs it again (answers projected meanwhile; the blend keeps the
+        saved domain).
         """
         self.leaves = None
-        method = saved.method if saved is not None else 'a-posteriori-bound'
-        if method not in ('a-posteriori-bound', 'domain-bnb+blend', 'prior-only'):
-            method = 'a-posteriori-bound'
-        dom = self.domain[0] if method == 'domain-bnb+blend' else None
+        if self._global(post, rkhs=True):
+            return
+        if post.N > self.JOINT_MAX_N:
+            self._clip_on(post, diagnostics=False)
+            return
+        method = 'domain-bnb+blend' if self.blend_on else 'projection'
+        dom = self.domain[0] if self.blend_on else None
         self.cert = Certificate(False, float('nan'), method, dom, self.scale,
-                                {'note': 'loaded from a file: not proven yet'}, stale=True)
+                                {'note': 'loaded from a file: not proven yet'}, stale=True,
+                                guarantee='pointwise')
 
-    def _prove(self, post, domains, start: float, reuse: bool) -> None:
+    def _prove(self, post, domains, reuse: bool) -> None:
         """
-        Prove on each domain in turn (with repairs of real counterexamples on the first).
+        Certificate (2) on each domain in turn; if none holds, no certificate (projected).
 
-        Else shrink the correction (module doc). Up to ``JOINT_MAX_N`` velocities the joint
-        branch-and-bound (``verify_box``), above it the element-wise proof (diagonal dominance),
-        whose boxes need to be small only along one element's short lengthscales.
+        Each domain gets the local repairs; a failed domain leaves the fitted weights unchanged.
         """
-        joint = post.N <= self.JOINT_MAX_N
-        res = None
         reason = ''
-        for k, dom in enumerate(domains):
-            (ilo, ihi), (olo, ohi) = dom
-            if not joint:
-                if self._prove_elementwise(post, dom, start, repair_rounds=self.REPAIR_ROUNDS
-                                           if k == 0 else 0, budget=self.options.max_boxes):
-                    return
-                reason = self.cert_reason
-                continue
-            res = verify_box(post.correction_terms(start), olo, ohi,
-                             max_boxes=self.options.max_boxes,
-                             leaves=self.leaves if reuse else None)
-            extra = {}
-            if not res.ok and k == 0 and res.witness is not None:
-                res, extra = self._repair(post, dom, start, res)
+        for dom in domains:
+            res, extra = self._prove_on(post, dom, self.leaves if reuse else None)
             if res.ok:
-                self.domain, self.scale, self.leaves = dom, start, res.leaves
-                self.cert = Certificate(True, res.margin, 'domain-bnb+blend', (ilo, ihi), start,
+                (ilo, ihi), (olo, ohi) = dom = (dom[0], self._outer)
+                self.domain, self.leaves, self.blend_on, self.clip = dom, res.leaves, True, False
+                self.cert = Certificate(True, res.margin, 'domain-bnb+blend', (ilo, ihi),
+                                        self.scale,
                                         {'boxes': res.boxes, 'bnb_seconds': res.seconds,
-                                         'outer_box': [olo.tolist(), ohi.tolist()], **extra})
+                                         'outer_box': [olo.tolist(), ohi.tolist()], **extra},
+                                        guarantee='passive-on-domain')
                 return
             reason = res.reason
-        # shrink the correction on the smallest domain: the global bound's scale is always
-        # provable; bisect above it with the domain proof
-        self.domain = dom = domains[-1]
-        (ilo, ihi), (olo, ohi) = dom
-        m_inf = post.mean.diag_inf()
-        B = post.l1_bound(rkhs=True)
-        s_lo, s_hi, best = max_scale(m_inf, B, start), start, None
-        budget = max(self.options.max_boxes // 8, 500)
-        for _ in range(6):
-            if s_hi - s_lo <= 0.02 * start:
-                break
-            mid = 0.5 * (s_lo + s_hi)
-            if joint:
-                r = verify_box(post.correction_terms(mid), olo, ohi, max_boxes=budget)
-                ok = r.ok
-            else:
-                ok = r = self._prove_elementwise(post, dom, mid, repair_rounds=0, budget=budget)
-                cert = self.cert
-            if ok:
-                s_lo, best = mid, r
-            else:
-                s_hi = mid
-        self.scale = s_lo
-        if best is not None and joint:
-            self.leaves = best.leaves
-            self.cert = Certificate(True, best.margin, 'domain-bnb+blend', (ilo, ihi), s_lo,
-                                    {'boxes': best.boxes, 'bnb_seconds': best.seconds,
-                                     'outer_box': [olo.tolist(), ohi.tolist()],
-                                     'reason': reason})
-        elif best is not None:
-            self.cert = cert.with_details(reason=reason)
-            self.domain, self.scale = dom, s_lo
-        else:
-            self.leaves = None
-            mm = norm_margin(m_inf, s_lo * B)
-            self.cert = Certificate(bool(mm >= 0), float(mm),
-                                    'a-posteriori-bound' if s_lo > 0 else 'prior-only', None,
-                                    s_lo, {'reason': reason})
+        self.domain, self.leaves, self.blend_on, self.clip = domains[0], None, False, False
+        self.cert = Certificate(False, -np.inf, 'projection', None, self.scale,
+                                {'reason': f'no proof: {reason}; every answer is projected'},
+                                guarantee='pointwise')
 
-    def _prove_elementwise(self, post, dom, start, repair_rounds: int, budget: int) -> bool:
+    def _prove_on(self, post, dom, leaves):
         """
-        Diagonal dominance on the domain.
+        Repair counterexamples on ``dom`` locally, then prove by branch-and-bound; repeat.
 
-        ``D_nn >= sum_{m != n} (B_nm + B_mn) / 2`` for each n by ``verify.verify_diagonal``
-        (low-dimensional searches, one shared box budget), the off-diagonal elements by their
-        global bounds ``B``. Each round first searches for velocities that break an inequality
-        (sampling; the search's own counterexamples too) and repairs them (cutting planes), then
-        proves; up to ``REPAIR_ROUNDS`` rounds. Sets the certificate and returns True on success.
+        A proof with a small budget comes first (most fits need nothing else). Then a fixed probe
+        set of the outer box (grid with its corners, uniform, near the data; its kernel rows built
+        once) is checked before each proof. Each round adds its most negative
+        powers and the verifier's last witness to the cutting planes, finds the least change of
+        the weights that makes every cut's power at least 5 % of the prior's there
+        (``repair.repair``) and runs the proof again. The cuts are on the *unblended* posterior,
+        which is what the proof is about (the blend is a convex combination with the prior).
+        Returns (``BoxResult``, record of the repair for the certificate); without a proof the
+        weights are left as they were.
         """
         (ilo, ihi), (olo, ohi) = dom
-        N = post.N
-        rng = np.random.default_rng(1)
-        old = None if post.delta is None else post.delta.copy()
-        Zs = [np.zeros((0, N)) for _ in range(N)]
-        boxes, t0 = 0, time.perf_counter()
-        witnesses = {}
-
-        def weight(Q):
-            return start * _blend(Q, dom)
-
-        self.cert_reason = ''
-        for rounds in range(repair_rounds + 1):
-            B = start * post.l1_bound(rkhs=True)
-            beta = 0.5 * (B.sum(axis=0) + B.sum(axis=1)) - np.diag(B)
-            if rounds < repair_rounds:
-                rows, margins = [], []
-                for n in range(N):
-                    def dnn(Q, n=n):
-                        return post.damping(Q, weight(Q))[:, n, n] - beta[n]
-                    Z = find_violations(dnn, post, olo, ohi, rng, k=5000 * (rounds + 1),
-                                        keep=100)
-                    if n in witnesses:
-                        Z = np.vstack([witnesses.pop(n)[None, :], Z])
-                    if len(Z) == 0:
-                        continue
-                    Zs[n] = np.vstack([Zs[n], Z])
-                    rows.append(diagonal_rows(post, Zs[n], weight(Zs[n]), n))
-                    margins.append(beta[n] + 0.05 * post.mean.diag(Zs[n])[:, n])
-                if rows:
-                    delta, _ = repair(post, (np.concatenate([r[0] for r in rows]),
-                                             [np.vstack([r[1][m] for r in rows])
-                                              for m in range(N)]), np.concatenate(margins))
-                    post.set_delta(delta if post.delta is None else post.delta + delta)
-                    B = start * post.l1_bound(rkhs=True)
-                    beta = 0.5 * (B.sum(axis=0) + B.sum(axis=1)) - np.diag(B)
-            T = post.correction_terms(start)
-            ok = True
-            for n in range(N):
-                r = verify_diagonal(T, n, olo, ohi, float(beta[n]),
-                                    max_boxes=max(budget - boxes, 1))
-                boxes += r.boxes
-                if not r.ok:
-                    ok = False
-                    self.cert_reason = r.reason
-                    if r.witness is not None:
-                        witnesses[n] = r.witness
-                    break
-            if ok:
-                rep = {} if post.delta is None else {
-                    'repaired_points': int(sum(len(z) for z in Zs)), 'repair_rounds': rounds}
-                self.cert = Certificate(True, 0.0, 'elementwise-bnb+blend', (ilo, ihi), start,
-                                        {'boxes': boxes, 'bnb_seconds': time.perf_counter() - t0,
-                                         'outer_box': [olo.tolist(), ohi.tolist()], **rep})
-                self.domain, self.scale, self.leaves = dom, start, None
-                return True
-            if boxes >= budget:
-                break
-        post.set_delta(old)
-        return False
-
-    def _repair(self, post, dom, start, res):
-        """
-        Repair the weights by cutting planes.
-
-        Cutting planes: make the power non-negative (with a 5 % margin of the prior's) at the
-        counterexamples found so far by the least change of the weights, re-verify, repeat.
-        Returns the last verification and the repair's record for the certificate.
-        """
-        (ilo, ihi), (olo, ohi) = dom
-        rng = np.random.default_rng(0)
-        old = None if post.delta is None else post.delta.copy()
-
-        def weight(Q):
-            return start * _blend(Q, dom)
-
-        def power(Q):
-            return np.einsum('ki,kij,kj->k', Q, post.damping(Q, weight(Q)), Q)
-
-        data = post.Qd
-        lo, hi = data.min(axis=0), data.max(axis=0)
-        probe = np.vstack([data, rng.uniform(lo, hi, (4000, lo.size))])
-        before = post.predict(probe, weight(probe))[0]
-        Zall = np.zeros((0, olo.size))
-        rounds = 0
-        for rounds in range(1, self.REPAIR_ROUNDS + 1):
-            Z = find_violations(power, post, olo, ohi, rng)
-            if res.witness is not None:
-                Z = np.vstack([res.witness[None, :], Z])
-            if len(Z) == 0:
-                break
-            Zall = np.vstack([Zall, Z])
-            margin = 0.05 * np.einsum('jn,jn->j', Zall * post.mean.diag(Zall), Zall)
-            delta, info = repair(post, power_rows(post, Zall, weight(Zall)), margin)
-            post.set_delta(delta if post.delta is None else post.delta + delta)
-            res = verify_box(post.correction_terms(start), olo, ohi,
-                             max_boxes=self.options.max_boxes)
-            if res.ok:
-                break
-        if not res.ok:
-            post.set_delta(old)             # no proof: the shrinking below starts from the fit
+        # most fits are proven at once: try that (small budget) before building the probe
+        res = verify_box(post.correction_terms(self.scale), olo, ohi,
+                         max_boxes=min(self.FIRST_BOXES, self.options.max_boxes), leaves=leaves)
+        if res.ok:
+            self._outer = (olo, ohi)
             return res, {}
-        change = np.abs(post.predict(probe, weight(probe))[0] - before).max(axis=0)
-        return res, {'repaired_points': int(len(Zall)), 'repair_rounds': rounds,
-                     'repair_max_change_in_data_box': change.tolist()}
+        old = None if post.delta is None else post.delta.copy()
+        Z = probe_points(post, olo, ohi, np.random.default_rng(0))
+        w = np.full(len(Z), self.scale)
+        probe = PowerProbe(post, Z, w)
+        before = None
+        cut_p0, cut_G = np.zeros(0), [np.zeros((0, post.n)) for _ in range(post.N)]
+        witness, repairs, halvings = res.witness, 0, 0
+        res = None
+        for _ in range(self.REPAIR_ROUNDS + self.BLEND_HALVINGS + 1):
+            P = probe.power(post.weights)
+            P[np.any((Z < olo) | (Z > ohi), axis=1)] = np.inf     # outside the proof's box
+            idx = most_negative(P, self.CUTS_PER_ROUND)
+            bad = Z[idx] if witness is None else np.vstack([witness[None, :], Z[idx]])
+            out_lo, out_hi = np.any(bad < ilo, axis=0), np.any(bad > ihi, axis=0)
+            if (np.any(out_lo) or np.any(out_hi)) and halvings < self.BLEND_HALVINGS:
+                # counterexamples in the blend zone, beyond the box the correction is kept on:
+                # narrow the blend on those sides instead of changing the model inside
+                olo = np.where(out_lo, ilo - 0.5 * (ilo - olo), olo)
+                ohi = np.where(out_hi, ihi + 0.5 * (ohi - ihi), ohi)
+                halvings += 1
+                witness = None
+                res = None
+                continue
+            if len(idx) or witness is not None:
+                if repairs == self.REPAIR_ROUNDS:
+                    break
+                if before is None:
+                    before = self._force_sample(post, Z, w)
+                p0, G = probe.take(idx)
+                if witness is not None:
+                    pw, Gw = power_rows(post, witness[None, :], w[:1])
+                    p0, G = np.r_[pw, p0], [np.vstack([a, b]) for a, b in zip(Gw, G)]
+                cut_p0 = np.r_[cut_p0, p0]
+                cut_G = [np.vstack([a, b]) for a, b in zip(cut_G, G)]
+                delta, _ = repair(post, (cut_p0, cut_G), 0.05 * np.maximum(cut_p0, 0.0))
+                post.set_delta(delta if post.delta is None else post.delta + delta)
+                repairs += 1
+            res = verify_box(post.correction_terms(self.scale), olo, ohi,
+                             max_boxes=self.options.max_boxes,
+                             leaves=leaves if repairs == halvings == 0 else None)
+            if res.ok or res.witness is None:
+                break
+            witness = res.witness
+        self._outer = (olo, ohi)
+        if res is None or not res.ok:
+            post.set_delta(old)
+            reason = res.reason if res is not None else 'violations left after the repairs'
+            return (res if res is not None else
+                    BoxResult(False, -np.inf, None, 0, 0.0, reason=reason)), {}
+        if before is None:
+            return res, {}
+        change = np.abs(self._force_sample(post, Z, w) - before).max(axis=0)
+        return res, {'repaired_points': int(len(cut_p0)), 'repair_rounds': repairs,
+                     'repair_max_change_in_domain': change.tolist()}
+
+    @staticmethod
+    def _force_sample(post, Z, w):
+        """Return the posterior's force at (at most 1000 of) the probe velocities (the record)."""
+        k = min(len(Z), 1000)
+        return post.predict(Z[:k], w[:k])[0]
 
     # ---------------------------------------------------------------- estimates
+    @property
+    def needs_damping(self) -> bool:
+        """Tell whether ``finalize`` needs every answer's damping matrix (eigenvalue floor)."""
+        return self.clip
+
     def weight(self, Q):
         """
         Return the correction weight.
 
         ``s * w(q)``: the correction scale times the C2 smootherstep blend that is 1 on the
-        verified box and 0 outside the outer box (only for a domain certificate).
+        verified box and 0 outside the outer box (only while a domain certificate is in use);
+        None (1) otherwise.
         """
-        if self.cert is None or self.cert.domain is None or self.domain is None:
-            return np.full(Q.shape[0], self.scale)
-        return self.scale * _blend(Q, self.domain)
+        if self.blend_on and self.domain is not None:
+            return self.scale * _blend(Q, self.domain)
+        return None if self.scale == 1.0 else np.full(Q.shape[0], self.scale)
 
     def finalize(self, post, Q, tau, D):
-        return self._stale_fallback(post, Q, tau, D)
+        """
+        Apply the eigenvalue floor (``psd-clip``), then the projection.
+
+        The projection is the guarantee while nothing is proven (stale or failed) and a
+        rounding-level safeguard otherwise (it moves an estimate by a few ulps at most).
+        """
+        if self.clip:
+            if D is None:
+                raise ValueError('certified (psd-clip): finalize needs the damping matrix')
+            D, _ = psd_clip(D, self._delta(post))
+            tau = np.einsum('kij,kj->ki', D, Q)
+        return self._project(Q, tau, D)
 
     # ---------------------------------------------------------------- persistence
     def state(self):
@@ -386,7 +378,7 @@ class CertifiedPolicy(PassivityPolicy):
         arrays = {'dom_ilo': ilo, 'dom_ihi': ihi, 'dom_olo': olo, 'dom_ohi': ohi}
         if self.leaves is not None:
             arrays['leaves_lo'], arrays['leaves_hi'] = self.leaves
-        return {'scale': self.scale}, arrays
+        return {'scale': self.scale, 'blend': self.blend_on}, arrays
 
     def load_state(self, meta, arrays, post):
         N = post.N
@@ -396,6 +388,7 @@ class CertifiedPolicy(PassivityPolicy):
         self.scale = float(meta['scale'])
         if not 0.0 <= self.scale <= 1.0:
             raise ValueError(f'certified model: correction scale {self.scale} not in [0, 1]')
+        self.blend_on = bool(meta.get('blend', True))
         self.domain = ((arrays['dom_ilo'], arrays['dom_ihi']),
                        (arrays['dom_olo'], arrays['dom_ohi']))
         lv: Optional[tuple] = None

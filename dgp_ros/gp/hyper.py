@@ -18,9 +18,11 @@ from scipy.linalg.lapack import dpotrf, dpotri, dpotrs
 from scipy.optimize import minimize
 
 from .kernels import _EXP_FLOOR, Structure
+from .means import make_mean, mean_from_dict, ViscousMean
 from .posterior import _JITTER_STEPS, Hyper
 
-__all__ = ['LmlObjective', 'initial_hyper', 'learn_hyper', 'MIN_NOISE_VAR']
+__all__ = ['LmlObjective', 'initial_hyper', 'learn_hyper', 'MIN_NOISE_VAR',
+           'hyper_from_params']
 
 _LOG2PI = math.log(2.0 * math.pi)
 # noise floor, standardized units (noise std >= 1e-3 of the residual RMS). Lower floors let
@@ -407,3 +409,26 @@ def learn_hyper(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarr
         hp.log_sn2[m] = th[-1]
         lml.append(float(-best.fun))
     return hp, {'lml_per_output': lml, 'evaluations': evals}
+
+
+def hyper_from_params(d: dict, kind: str):
+    """(Hyper, PriorMean) from a ``hyperparams_`` dict; ValueError when malformed."""
+    if not isinstance(d, dict):
+        raise ValueError("hyperparams must be a dict (a fitted model's hyperparams_)")
+    hp = Hyper.from_dict(d)
+    m = d.get('mean')
+    if isinstance(m, dict):
+        mean = mean_from_dict(m, hp.sx.size)
+    else:                       # a bare m_d vector (tests, hand-written starts)
+        if m is None:
+            raise ValueError("hyperparams is missing ['mean']")
+        mean = make_mean('viscous', kind)
+        arr = np.asarray(m, float)
+        if isinstance(mean, ViscousMean):
+            mean.m_d = arr
+        else:
+            mean.value = arr
+        mean.bias = np.zeros(hp.sx.size)
+    Structure.of(kind, hp.sx.size)
+    Hyper.from_dict(d, Structure.of(kind, hp.sx.size))
+    return hp, mean

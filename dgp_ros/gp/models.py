@@ -19,13 +19,15 @@ from typing import Optional
 import numpy as np
 
 from ._validation import as_matrix, as_pair
-from .hyper import apply_fixed_noise, initial_hyper, learn_hyper, scales
+from .hyper import apply_fixed_noise, hyper_from_params, initial_hyper, learn_hyper, scales
 from .kernels import KINDS, Structure
 from .means import make_mean, PRIORS
-from .passivity import Certificate, check_mode, policy_class, PolicyOptions
-from .posterior import Hyper, Posterior
+from .passivity import check_mode, policy_class
+from .persistence import read_model, save_model
+from .policy import Certificate, PolicyOptions
+from .posterior import Posterior
 
-__all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class']
+__all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class', 'load_model']
 
 
 #: query rows per chunk times training samples: bounds the (rows, n) kernel temporaries of a
@@ -51,7 +53,8 @@ class _DGP:
     ----------
     passivity : str
         A mode of ``passivity.PASSIVITY_MODES`` ('none' | 'paper' | 'certified' | 'projected';
-        docs/PASSIVITY.md says what each proves).
+        docs/PASSIVITY.md says what each proves). Default 'certified' (ArdGP: 'none', it has no
+        damping matrix to certify).
     noise : float or (N,) array or None
         Fixed noise standard deviation per output, force units; None = learn it.
     window : int or None
@@ -90,7 +93,7 @@ class _DGP:
 
     _kind = ''
 
-    def __init__(self, passivity: str = 'none', noise=None, window: Optional[int] = None,
+    def __init__(self, passivity: str = 'certified', noise=None, window: Optional[int] = None,
                  n_restarts: int = 2, max_opt_samples: int = 300, domain_margin: float = 0.1,
                  blend_width: float = 0.1, max_boxes: int = 50000, projection_weights=None,
                  hyperparams: Optional[dict] = None, random_state: int = 0,
@@ -115,7 +118,7 @@ class _DGP:
     # ------------------------------------------------------------------ parameters
     @classmethod
     def _param_names(cls):
-        sig = inspect.signature(cls.__init__)
+        sig = inspect.signature(_DGP.__init__)
         return [p for p in sig.parameters if p != 'self']
 
     def get_params(self, deep: bool = True) -> dict:
@@ -337,24 +340,14 @@ class _DGP:
         Passive as the policy guarantees (``passivity``); the variance is the GP posterior
         variance (noise-free), force units squared. The bias is not included (``bias_``).
         """
-        p = self._check_fitted()
-        Q = as_matrix(Qs, 'Qs', p.N)
-
-        def part(Qc):
-            tau, var = p.predict(Qc, self.policy_.weight(Qc), return_var, p.element_kernels(Qc))
-            return self.policy_.finalize(p, Qc, tau, None)[0], var
-        tau, var = _in_chunks(Q, p.n, part)
+        tau, var, _ = self._answers(Qs, return_var, False)
         return (tau, var) if return_var else tau
 
     def damping_matrix(self, Qs) -> np.ndarray:
         """Posterior damping matrix D(q), (k, N, N), with ``predict(q) = D(q) q``."""
-        p = self._check_fitted()
-        Q = as_matrix(Qs, 'Qs', p.N)
-
-        def part(Qc):
-            D = p.damping(Qc, self.policy_.weight(Qc))
-            return (self.policy_.finalize(p, Qc, np.einsum('kij,kj->ki', D, Qc), D)[1],)
-        return _in_chunks(Q, p.n, part)[0]
+        if not self._check_fitted().structure.has_damping:
+            raise NotImplementedError('ArdGP models the force directly and has no damping matrix')
+        return self._answers(Qs, False, True, tau_from_predict=False)[2]
 
     def predict_with_damping(self, Qs, return_var: bool = True, return_damping: bool = True):
         """
@@ -365,16 +358,31 @@ class _DGP:
         var None without ``return_var`` (the online estimator skips what nobody subscribes to:
         together they are about 60 % of a 7-joint answer).
         """
+        return self._answers(Qs, return_var, return_damping)
+
+    def _answers(self, Qs, want_var: bool, want_D: bool, tau_from_predict: bool = True) -> tuple:
+        """
+        Return (tau, var or None, D or None) at Qs, through the policy, in row chunks.
+
+        D is built when asked for or when the policy's ``finalize`` needs it (``needs_damping``);
+        tau comes from the posterior's own prediction (bit-identical to ``predict``) unless D is
+        at hand and that does not matter.
+        """
         p = self._check_fitted()
         Q = as_matrix(Qs, 'Qs', p.N)
+        pol = self.policy_
+        need_D = p.structure.has_damping and (want_D or pol.needs_damping)
 
         def part(Qc):
             Kel = p.element_kernels(Qc)
-            w = self.policy_.weight(Qc)
-            tau, var = p.predict(Qc, w, return_var, Kel)
-            D = p.damping(Qc, w, Kel) if p.structure.has_damping and return_damping else None
-            tau, D = self.policy_.finalize(p, Qc, tau, D)
-            return tau, var, D
+            w = pol.weight(Qc)
+            D = p.damping(Qc, w, Kel) if need_D else None
+            if D is not None and not want_var and (pol.needs_damping or not tau_from_predict):
+                tau, var = np.einsum('kij,kj->ki', D, Qc), None
+            else:
+                tau, var = p.predict(Qc, w, want_var, Kel)
+            tau, D = pol.finalize(p, Qc, tau, D)
+            return tau, var, D if want_D else None
         return _in_chunks(Q, p.n, part)
 
     def snapshot(self, variance: bool = True) -> '_DGP':
@@ -418,42 +426,16 @@ class _DGP:
     # ------------------------------------------------------------------ persistence
     def save(self, path) -> None:
         """Write the model to ``path`` atomically (``persistence``: npz + JSON header)."""
-        from .persistence import save_model
         self._check_fitted()
         save_model(self, path)
 
     @classmethod
     def load(cls, path):
         """Read a model written by ``save``; ValueError for anything else (``persistence``)."""
-        from .persistence import load_model
         model = load_model(path)
         if cls is not _DGP and not isinstance(model, cls):
             raise ValueError(f'{path}: holds a {type(model).__name__}, not a {cls.__name__}')
         return model
-
-
-def hyper_from_params(d: dict, kind: str):
-    """(Hyper, PriorMean) from a ``hyperparams_`` dict; ValueError when malformed."""
-    from .means import ViscousMean, mean_from_dict
-    if not isinstance(d, dict):
-        raise ValueError("hyperparams must be a dict (a fitted model's hyperparams_)")
-    hp = Hyper.from_dict(d)
-    m = d.get('mean')
-    if isinstance(m, dict):
-        mean = mean_from_dict(m, hp.sx.size)
-    else:                       # a bare m_d vector (tests, hand-written starts)
-        if m is None:
-            raise ValueError("hyperparams is missing ['mean']")
-        mean = make_mean('viscous', kind)
-        arr = np.asarray(m, float)
-        if isinstance(mean, ViscousMean):
-            mean.m_d = arr
-        else:
-            mean.value = arr
-        mean.bias = np.zeros(hp.sx.size)
-    Structure.of(kind, hp.sx.size)
-    Hyper.from_dict(d, Structure.of(kind, hp.sx.size))
-    return hp, mean
 
 
 class FullDGP(_DGP):
@@ -473,8 +455,8 @@ class ArdGP(_DGP):
 
     _kind = 'ard'
 
-    def damping_matrix(self, Qs):
-        raise NotImplementedError('ArdGP models the force directly and has no damping matrix')
+    def __init__(self, passivity: str = 'none', **kw):
+        super().__init__(passivity=passivity, **kw)
 
 
 _KINDS = {'full': FullDGP, 'diag': DiagDGP, 'ard': ArdGP}
@@ -491,3 +473,20 @@ def model_class(kind: str):
 def make_model(kind: str, **kw) -> _DGP:
     """Construct a model by name: 'full' | 'diag' | 'ard'."""
     return model_class(kind)(**kw)
+
+
+def load_model(path) -> _DGP:
+    """
+    Load any model written by ``save``; ValueError with a reason for anything else.
+
+    ``persistence.read_model`` validates the file and restores the posterior; the estimator is
+    built here, and its policy re-derives the certificate (never taken from the file).
+    """
+    f = read_model(path)
+    try:
+        model = model_class(f.kind)(**f.params)
+        model._restore(f.posterior, f.policy, f.policy_arrays, f.certificate)
+    except Exception as exc:      # a crafted header: wrong names, types or policy state
+        raise ValueError(f'{path}: malformed model file ({type(exc).__name__}: {exc})') \
+            from None
+    return model

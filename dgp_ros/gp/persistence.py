@@ -20,6 +20,7 @@ Reading trusts nothing in the file:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import hashlib
 import io
 import json
@@ -30,8 +31,12 @@ import zipfile
 
 import numpy as np
 
-__all__ = ['save_model', 'load_model', 'is_model_file', 'FORMAT_VERSION', 'MAX_JOINTS',
-           'MAX_SAMPLES']
+from .kernels import KINDS, Structure
+from .means import mean_from_dict
+from .posterior import Hyper, Posterior
+
+__all__ = ['save_model', 'read_model', 'ModelFile', 'is_model_file', 'FORMAT_VERSION',
+           'MAX_JOINTS', 'MAX_SAMPLES']
 
 FORMAT_VERSION = 2
 MAX_JOINTS = 64
@@ -143,11 +148,32 @@ def is_model_file(path) -> bool:
         return False
 
 
-def load_model(path):
+@dataclass
+class ModelFile:
     """
-    Load any model written by ``save`` (the module docstring says what is checked).
+    The validated content of a model file (``read_model``), not yet a model.
 
-    Raises ValueError with a reason for anything that is not a usable dgp_ros model file.
+    kind : 'full' | 'diag' | 'ard'; params : constructor arguments (``hyperparams`` None);
+    posterior : the restored ``Posterior``; policy : the policy's saved state (json dict);
+    policy_arrays : its arrays; certificate : the saved record (never trusted: the policy
+    re-derives it).
+    """
+
+    kind: str
+    params: dict
+    posterior: Posterior
+    policy: dict
+    policy_arrays: dict
+    certificate: dict
+
+
+def read_model(path) -> ModelFile:
+    """
+    Read and validate a file written by ``save_model`` (the module docstring says what is checked).
+
+    This layer sits below the estimators: it returns the pieces and ``models.load_model`` builds
+    the estimator from them. Raises ValueError with a reason for anything that is not a usable
+    dgp_ros model file.
     """
     try:
         return _load(os.fspath(path))
@@ -161,12 +187,7 @@ def load_model(path):
                          f'({type(exc).__name__}: {exc})') from None
 
 
-def _load(path: str):
-    from .kernels import Structure
-    from .means import mean_from_dict
-    from .models import model_class
-    from .posterior import Hyper, Posterior
-
+def _load(path: str) -> ModelFile:
     try:
         st = os.stat(path)
     except FileNotFoundError:
@@ -194,7 +215,8 @@ def _load(path: str):
             raise ValueError(f'{path}: model format version {version} is not supported by this '
                              f'dgp_ros (reads 1 and {FORMAT_VERSION}); refit and save again')
         kind, N = header.get('kind'), header.get('N')
-        cls = model_class(kind)        # ValueError for an unknown kind
+        if kind not in KINDS:
+            raise ValueError(f"unknown model kind {kind!r}: expected one of {', '.join(KINDS)}")
         if not isinstance(N, int) or not 1 <= N <= MAX_JOINTS:
             raise ValueError(f'{path}: N = {N!r} outside 1..{MAX_JOINTS}')
         structure = Structure.of(kind, N)
@@ -226,8 +248,6 @@ def _load(path: str):
             raise ValueError(f'{path}: array {key} has non-finite values')
     params = dict(header['params'])
     params['hyperparams'] = None
-    model = cls(**params)
-    model._check_params(N)
     hyper = Hyper.from_dict({k: arrays['hp_' + k] for k in Hyper.FIELDS}, structure)
     mean = mean_from_dict(header['mean'], N)
     window = header.get('window', params.get('window'))
@@ -238,8 +258,8 @@ def _load(path: str):
                              arrays['jit'], [arrays[f'L{m}'] for m in range(N)],
                              [arrays[f'z{m}'] for m in range(N)], window, delta)
     pol_arrays = {k[4:]: v for k, v in arrays.items() if k.startswith('pol_')}
-    model._restore(post, header.get('policy', {}), pol_arrays, header.get('certificate', {}))
-    return model
+    return ModelFile(kind, params, post, header.get('policy', {}), pol_arrays,
+                     header.get('certificate', {}))
 
 
 def _upgrade_v1(header: dict, arrays: dict, kind: str, N: int):

@@ -31,7 +31,7 @@ import numpy as np
 
 from .copositive import copositivity_margin
 
-__all__ = ['CorrectionTerms', 'verify_box', 'verify_diagonal', 'BoxResult']
+__all__ = ['CorrectionTerms', 'verify_box', 'BoxResult']
 
 
 @dataclass
@@ -211,12 +211,12 @@ def _power_test(lo, hi, Dlo, Dhi, mean_diag):
     return lb / norm
 
 
-def _bisect(qlo, qhi, fl, fh, centre, scale):
+def _bisect(fl, fh, centre, scale):
     """
-    Append the two halves of each failed box to the queue; returns the new (qlo, qhi).
+    Halve each failed box (fl, fh) at its ``centre`` across its widest side in units of ``scale``.
 
-    Each box (fl, fh) is halved at its ``centre`` across its widest side in units of
-    ``scale`` (lengthscales: the kernel varies most along that side).
+    (Lengthscales: the kernel varies most along that side.) Returns the children (lo, hi),
+    the first halves of all boxes, then the second halves.
     """
     d = np.argmax((fh - fl) / scale, axis=1)
     r = np.arange(len(fl))
@@ -225,7 +225,7 @@ def _bisect(qlo, qhi, fl, fh, centre, scale):
     a_hi[r, d] = mid
     b_lo = fl.copy()
     b_lo[r, d] = mid
-    return np.concatenate([qlo, fl, b_lo]), np.concatenate([qhi, a_hi, fh])
+    return np.concatenate([fl, b_lo]), np.concatenate([a_hi, fh])
 
 
 def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes: int = 20000,
@@ -235,6 +235,9 @@ def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes:
 
     leaves: a previous partition of the same box (from ``BoxResult.leaves``) to start from.
     Returns a ``BoxResult``; ``ok`` is rigorous (up to floating-point rounding of the bounds).
+    Worst first: each batch takes the queued boxes whose parent had the lowest margin, so a
+    counterexample (a box centre with ``P < 0``) is found after few boxes; a proof examines
+    the same boxes in any order.
     """
     t0 = time.perf_counter()
     lo = np.asarray(lo, float)
@@ -243,6 +246,7 @@ def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes:
         qlo, qhi = np.array(leaves[0], float), np.array(leaves[1], float)
     else:
         qlo, qhi = _split_at_zero(lo, hi)
+    key = np.zeros(len(qlo))
     mref = np.maximum(np.asarray(T.mean.diag_ref(), float), 0.0)
     scale = max(float(np.max(mref)), 1e-300)
     lmin = np.min(T.ls, axis=0) * T.sx if len(T.elems) else np.ones(lo.size)
@@ -253,8 +257,15 @@ def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes:
         if examined >= max_boxes:
             return BoxResult(False, -np.inf, None, examined, time.perf_counter() - t0,
                              reason=f'box budget {max_boxes} exhausted before a proof')
-        bl, bh = qlo[:batch], qhi[:batch]
-        qlo, qhi = qlo[batch:], qhi[batch:]
+        if len(qlo) > batch:
+            take = np.argpartition(key, batch - 1)[:batch]
+            rest = np.ones(len(qlo), dtype=bool)
+            rest[take] = False
+            bl, bh = qlo[take], qhi[take]
+            qlo, qhi, key = qlo[rest], qhi[rest], key[rest]
+        else:
+            bl, bh = qlo, qhi
+            qlo, qhi, key = qlo[:0], qhi[:0], key[:0]
         examined += len(bl)
         Dlo, Dhi = _d_interval(T, bl, bh)
         ma = _matrix_test(bl, bh, Dlo, Dhi, scale)
@@ -278,61 +289,13 @@ def verify_box(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray, *, max_boxes:
             return BoxResult(False, float(Pc[k] / normc[k]), None, examined,
                              time.perf_counter() - t0, witness=centre[k],
                              reason='counterexample: q^T D(q) q < 0 inside the domain')
-        qlo, qhi = _bisect(qlo, qhi, fl, fh, centre, lmin)
+        clo, chi = _bisect(fl, fh, centre, lmin)
+        qlo, qhi = np.concatenate([qlo, clo]), np.concatenate([qhi, chi])
+        mf = m[~ok]
+        mf = np.where(np.isnan(mf), -1e300, np.maximum(mf, -1e300))
+        key = np.concatenate([key, np.tile(mf, 2)])
     leaves_out = (np.concatenate(done_lo) if done_lo else np.zeros((0, lo.size)),
                   np.concatenate(done_hi) if done_hi else np.zeros((0, lo.size)))
     if margin == np.inf:
         margin = 0.0
     return BoxResult(True, float(margin), leaves_out, examined, time.perf_counter() - t0)
-
-
-def verify_diagonal(T: CorrectionTerms, n: int, lo: np.ndarray, hi: np.ndarray, beta: float, *,
-                    max_boxes: int = 20000, batch: int = 512) -> BoxResult:
-    """
-    Prove ``D_nn(q) >= beta`` for all q in the box ``[lo, hi]`` (model units).
-
-    With ``beta_n = sum_{m != n} (B_nm + B_mn) / 2`` from the global bounds of the off-diagonal
-    elements, these N scalar proofs give passivity by diagonal dominance
-    (``z^T S z >= sum_n z_n^2 (S_nn - sum_{m != n} |S_nm|)`` for the symmetric part). Each one
-    only involves element (n, n), so its boxes are split along that element's short lengthscales
-    alone: in 7-D this is N low-dimensional searches instead of one search whose boxes must be
-    small in every dimension. ``witness``: a velocity with ``D_nn < beta`` (a counterexample of
-    this sufficient condition, not necessarily of passivity).
-    """
-    t0 = time.perf_counter()
-    lo = np.asarray(lo, float)
-    hi = np.asarray(hi, float)
-    es = [e for e, (m, k) in enumerate(T.elems) if m == n and k == n and T.sf2[e] > 0]
-    Te = CorrectionTerms(T.X, [T.elems[e] for e in es], T.sf2[es], T.ls[es], T.coef[es], T.mean,
-                         T.sx, T.sy, T.D_fn, rkhs=T.rkhs[es])
-    ls = (np.min(T.ls[es], axis=0) if es else np.ones(lo.size)) * T.sx
-    ref = max(float(np.max(np.maximum(T.mean.diag_ref(), 0.0))), 1e-300)
-    qlo, qhi = lo[None, :].copy(), hi[None, :].copy()
-    margin, examined = np.inf, 0
-    while len(qlo):
-        if examined >= max_boxes:
-            return BoxResult(False, -np.inf, None, examined, time.perf_counter() - t0,
-                             reason=f'box budget {max_boxes} exhausted before a proof of '
-                                    f'D_{n}{n} >= {beta:.3g}')
-        bl, bh = qlo[:batch], qhi[:batch]
-        qlo, qhi = qlo[batch:], qhi[batch:]
-        examined += len(bl)
-        Dlo, _ = _d_interval(Te, bl, bh)
-        v = (Dlo[:, n, n] - beta) / ref
-        ok = v >= 0
-        if np.any(ok):
-            margin = min(margin, float(v[ok].min()))
-        if np.all(ok):
-            continue
-        fl, fh = bl[~ok], bh[~ok]
-        centre = 0.5 * (fl + fh)
-        dc = T.D_fn(centre)[:, n, n]
-        neg = dc < beta - 1e-10 * (abs(beta) + ref)
-        if np.any(neg):
-            k = int(np.argmin(dc))
-            return BoxResult(False, float((dc[k] - beta) / ref), None, examined,
-                             time.perf_counter() - t0, witness=centre[k],
-                             reason=f'counterexample: D_{n}{n}(q) < {beta:.3g} inside the domain')
-        qlo, qhi = _bisect(qlo, qhi, fl, fh, centre, ls)
-    return BoxResult(True, 0.0 if margin == np.inf else float(margin), None, examined,
-                     time.perf_counter() - t0)
