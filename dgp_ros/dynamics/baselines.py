@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ['fit_cv', 'fit_sigmoid', 'residual_stream']
+__all__ = ['fit_cv', 'fit_sigmoid', 'residual_stream', 'predict_cv', 'predict_sigmoid']
 
 
 def fit_cv(v, y) -> dict:
@@ -46,6 +46,16 @@ def fit_cv(v, y) -> dict:
     _, eps, c = best
     return {'eps': eps, 'Fc': c[0], 'Fv': c[1], 'b': c[2],
             'f': lambda x, eps=eps, c=c: c[0] * np.tanh(x / eps) + c[1] * x}
+
+
+def predict_cv(fit: dict, v) -> np.ndarray:
+    """Coulomb-viscous friction (no bias) of a :func:`fit_cv` result at ``v`` (k,) [N m]."""
+    return fit['Fc'] * np.tanh(np.asarray(v) / fit['eps']) + fit['Fv'] * np.asarray(v)
+
+
+def predict_sigmoid(fit: dict, v) -> np.ndarray:
+    """Makkar friction (no bias) of a :func:`fit_sigmoid` result at ``v`` (k,) [N m]."""
+    return _makkar(fit['params'], np.asarray(v))
 
 
 def _makkar(p, v):
