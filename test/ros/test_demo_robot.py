@@ -87,3 +87,16 @@ def test_robot_demo_arguments():
     assert not any(x in cmd for x in ('prior:=', 'bias:=', 'passivity:='))
     with pytest.raises(SystemExit):
         parse_args(['--robot', 'kuka'])
+
+
+def test_readme_runs_the_robot_demo_with_one_command_and_keeps_two_setup_commands():
+    from dgp_ros.robot_demo import parse_args
+    text = open(os.path.join(REPO, 'README.md')).read()
+    two = text.split('## Two commands', 1)[1].split('```bash', 1)[1].split('```', 1)[0]
+    assert [ln.split('#')[0].strip() for ln in two.strip().splitlines()] == [
+        'bash scripts/run_demo.sh', 'bash scripts/run_tests.sh']
+    robot = re.search(r'^bash scripts/run_demo\.sh (--robot \S+)', text, re.M)
+    assert robot, 'no robot demo command in the README'
+    assert parse_args(robot.group(1).split()).robot == 'panda'
+    assert 'exec .venv/bin/python -m dgp_ros.demo "$@"' in open(
+        os.path.join(REPO, 'scripts', 'run_demo.sh')).read()       # arguments pass through
