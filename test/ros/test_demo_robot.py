@@ -40,7 +40,7 @@ def test_robot_demo_quick_writes_the_held_out_numbers(tmp_path):
     for key in ('nmse', 'nmse_sigmoid', 'nmse_coulomb_viscous', 'friction_rms'):
         assert sorted(s[key]) == joints, key
         assert all(math.isfinite(v) and v >= 0 for v in s[key].values()), (key, s[key])
-    assert s['published'] == 6000
+    assert abs(s['published'] - 6000) <= 1        # stamps before 6 s, jittered
     assert 0.2 < s['answered_fraction'] <= 1.0
     assert s['paired'] > 0 and 0 < s['latency_ms']['median'] <= s['latency_ms']['p99']
     # passive: no answer and no prediction below zero beyond rounding (-1e-12 |qd| |tau|; the
