@@ -34,6 +34,7 @@ setup(
         'console_scripts': [
             'estimator = dgp_ros.estimator_node:main',
             'sim_bridge = sim_bridge.node:main',
+            'dgp-arm-sim = dgp_ros.arm_sim_node:main',
             'dgp-demo = dgp_ros.demo:main',
             'dgp-replay = dgp_ros.replay:main',
             'dgp-record = dgp_ros.bags.cli:record_main',

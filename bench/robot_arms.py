@@ -23,6 +23,7 @@ the same ``AccelFilter``, one sample per ``min_sample_interval_s`` = 10 ms, the 
 Coulomb-viscous ``Fc tanh(v / eps) + Fv v + b`` (eps from a grid) and the sigmoid model of
 Makkar et al. ``a1 (tanh(b1 v) - tanh(b2 v)) + a2 tanh(b3 v) + a3 v + b`` (multi-start); the
 bias ``b`` is fitted and left out of the prediction, as the D-GP's.
+(The fits are dgp_ros/dynamics/baselines.py, shared with the robot demo.)
 
 Usage: bench/robot_arms.py [--quick] [--out DIR]
 """
@@ -40,6 +41,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import numpy as np  # noqa: E402
 
 import common as C  # noqa: E402
+from dgp_ros.dynamics.baselines import fit_cv, fit_sigmoid  # noqa: E402
+from dgp_ros.dynamics.baselines import residual_stream as _residual_stream  # noqa: E402
 from dgp_ros.online.config import PARAMS  # noqa: E402
 
 NAME = 'robot_arms'
@@ -90,81 +93,9 @@ def make_data(robot, duration, seed, work):
 
 def residual_stream(D, urdf, config):
     """Return the estimator front end's residual samples on the learning part: (Qd, R)."""
-    from dgp_ros.dynamics import AccelFilter, FrictionResidual, make_inverse_dynamics
-    d, k, names = D['sim'], D['k'], D['names']
-    inv = make_inverse_dynamics('urdf', urdf_file=urdf, joints=names)
-    front = FrictionResidual(inv, AccelFilter(config.accel_half_window_s))
-    dt = config.min_sample_interval_s
-    last = None
-    Q, R = [], []
-    for i in range(k):
-        t = float(d['t'][i])
-        want = not (dt > 0 and last is not None and last <= t < last + dt * (1.0 - 1e-9))
-        if want:
-            last = t
-        for r in front.push(t, d['q'][i], d['qd'][i], d['effort'][i], want=want):
-            Q.append(r.qd)
-            R.append(r.residual)
-    return np.array(Q), np.array(R)
-
-
-# ----------------------------------------------------------------------------- baselines
-def fit_cv(v, y):
-    """Coulomb-viscous + bias, per joint: ``Fc tanh(v/eps) + Fv v + b``; eps from a grid."""
-    best = None
-    for eps in (0.001, 0.003, 0.01, 0.03, 0.1):
-        A = np.column_stack([np.tanh(v / eps), v, np.ones_like(v)])
-        c, *_ = np.linalg.lstsq(A, y, rcond=None)
-        r = float(np.sum((A @ c - y) ** 2))
-        if best is None or r < best[0]:
-            best = (r, eps, c)
-    _, eps, c = best
-    return {'eps': eps, 'Fc': c[0], 'Fv': c[1], 'b': c[2],
-            'f': lambda x, eps=eps, c=c: c[0] * np.tanh(x / eps) + c[1] * x}
-
-
-def _makkar(p, v):
-    a1, a2, a3, _, l1, l2, l3 = p
-    return (a1 * (np.tanh(np.exp(l1) * v) - np.tanh(np.exp(l2) * v))
-            + a2 * np.tanh(np.exp(l3) * v) + a3 * v)
-
-
-def fit_sigmoid(v, y, cv):
-    """
-    Fit the Makkar friction model per joint.
-
-    Makkar et al.: ``a1 (tanh(b1 v) - tanh(b2 v)) + a2 tanh(b3 v) + a3 v + b``, per joint,
-    ``scipy.optimize.least_squares`` from several starts (b_i = exp(l_i) > 0).
-    """
-    from scipy.optimize import least_squares
-
-    def res(p):
-        return _makkar(p, v) + p[3] - y
-
-    # bounds keep the fit inside physical magnitudes: without them a1 -> inf with b1 -> b2
-    # (a derivative-like term) fits the noise and explodes between the samples
-    ymax = max(float(np.max(np.abs(y))), 1e-6)
-    vmax = max(float(np.max(np.abs(v))), 1e-6)
-    lb = np.array([-5 * ymax, -5 * ymax, -5 * ymax / vmax, -5 * ymax,
-                   np.log(0.1), np.log(0.1), np.log(0.1)])
-    ub = -lb
-    ub[4:] = np.log(1e4)
-    best = None
-    for a1f in (0.0, 0.5):
-        for s1 in (0.005, 0.02):
-            for s2 in (0.05, 0.2):
-                p0 = np.array([a1f * max(cv['Fc'], 0.05), cv['Fc'], cv['Fv'], cv['b'],
-                               np.log(1 / s1), np.log(1 / s2), np.log(1 / cv['eps'])])
-                p0 = np.clip(p0, lb + 1e-9, ub - 1e-9)
-                try:
-                    r = least_squares(res, p0, bounds=(lb, ub), method='trf', x_scale='jac',
-                                      max_nfev=2000)
-                except Exception:   # pragma: no cover - a bad start
-                    continue
-                if best is None or r.cost < best.cost:
-                    best = r
-    p = best.x
-    return {'params': p, 'b': p[3], 'f': lambda x, p=p: _makkar(p, x)}
+    d, k = D['sim'], D['k']
+    return _residual_stream(d['t'][:k], d['q'][:k], d['qd'][:k], d['effort'][:k], urdf,
+                            D['names'], config.accel_half_window_s, config.min_sample_interval_s)
 
 
 # ----------------------------------------------------------------------------- D-GP rows

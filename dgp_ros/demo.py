@@ -9,8 +9,10 @@ force, fraction of negative estimated dissipated power, refits, certification, l
 plots and ``summary.json`` into ``--out`` (default ``out/demo``).
 
 ``--synthetic`` replaces sim_bridge by an in-process publisher of a known passive damping law
-(no JSBSim needed; used by the tests). Children are always terminated on exit (SIGINT, then
-SIGTERM, then SIGKILL; on Linux they also die with this process).
+(no JSBSim needed; used by the tests). ``--robot panda|ur5`` runs the robot demo instead: a
+simulated arm publishing raw ``/joint_states`` into the estimator (``dgp_ros.robot_demo``).
+Children are always terminated on exit (SIGINT, then SIGTERM, then SIGKILL; on Linux they also
+die with this process).
 """
 from __future__ import annotations
 
@@ -62,6 +64,25 @@ def _stop(proc: Optional[subprocess.Popen], name: str, grace: float = 30.0) -> O
         except subprocess.TimeoutExpired:
             print(f'[demo] {name} did not stop on {sig.name}', flush=True)
     return proc.poll()
+
+
+def isolated_env() -> dict:
+    """
+    Isolate this process and its children on DDS; return the children's environment.
+
+    A random ROS_DOMAIN_ID in 1..101 and localhost-only discovery, set in ``os.environ`` too
+    (before this process creates a context); unbuffered child output.
+    """
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 101))
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env.pop('ROS_LOCALHOST_ONLY', None)
+    env.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    env['PYTHONUNBUFFERED'] = '1'
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
+                                           'RMW_IMPLEMENTATION')})
+    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    return env
 
 
 class _Recorder:
@@ -263,7 +284,16 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='dgp-demo', description=__doc__.split('\n\n')[0])
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if any(x == '--robot' or x.startswith('--robot=') for x in argv):
+        from dgp_ros import robot_demo
+        return robot_demo.main(argv)
+    ap = argparse.ArgumentParser(prog='dgp-demo', description=__doc__.split('\n\n')[0],
+                                 epilog='The robot demo: dgp-demo --robot panda|ur5 [--quick] '
+                                 '(options: dgp-demo --robot panda --help).')
+    ap.add_argument('--robot', choices=('panda', 'ur5'),
+                    help='run the robot demo instead (a simulated arm publishing raw '
+                    '/joint_states, see dgp_ros/robot_demo.py)')
     ap.add_argument('--out', default='out/demo', help='output folder (plots, summary.json, logs)')
     ap.add_argument('--rate-hz', type=float, default=60.0, help='simulation output rate')
     ap.add_argument('--real-time-factor', type=float, default=2.0,
@@ -282,15 +312,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
 
-    env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 101))
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env.pop('ROS_LOCALHOST_ONLY', None)
-    env.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
-    env['PYTHONUNBUFFERED'] = '1'
-    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
-                                           'RMW_IMPLEMENTATION')})
-    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    env = isolated_env()
     print(f'[demo] ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]} (localhost only); output in {args.out}',
           flush=True)
 

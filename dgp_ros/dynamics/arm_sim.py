@@ -16,7 +16,10 @@ Friction per joint (smooth sign ``tanh(v / SIGN_VELOCITY)``, passive by construc
     f(v) = (coulomb + stribeck * exp(-(v / v_stribeck)^2)) * tanh(v / SIGN_VELOCITY) + viscous * v
 
 with the per-joint values of :data:`FRICTION_TABLES` (fixed per robot, magnitudes of a Panda's
-identified friction) and an optional constant sensor bias per joint (last column).
+identified friction) and an optional constant sensor bias per joint (last column). This is the
+estimator's prior family; ``friction='realistic'`` is friction outside it (direction asymmetry,
+sub-linear viscous, pose-dependent) and ``payload_kg`` a mass at the flange that the URDF does
+not have (both in ``realistic.py``).
 
 Trajectories: per joint a 5-harmonic Fourier series of base frequency 0.1 Hz with random
 coefficients (by seed), scaled so that the position stays inside the URDF limits with a 15 %
@@ -38,6 +41,7 @@ import sys
 import numpy as np
 
 from .inverse import UrdfInverseDynamics
+from .realistic import payload_inverse_dynamics, PAYLOAD_MOUNT, realistic_friction
 
 __all__ = ['ARM_JOINTS', 'FRICTION_TABLES', 'SIGN_VELOCITY', 'example_robot_urdf',
            'friction_truth', 'fourier_trajectory', 'negative_power_fraction', 'simulate_arm']
@@ -201,11 +205,23 @@ def _exciting_coefficients(rng, lower, upper, vmax, base_hz, harmonics, margin=0
     return coef * scale[:, None], centre - scale * 0.5 * (hi + lo)
 
 
+def _friction_kind(friction) -> str:
+    """``simulate_arm``'s ``friction`` argument as 'table', 'realistic' or 'none'."""
+    if friction is True or friction == 'table':
+        return 'table'
+    if friction is False or friction in ('none', None):
+        return 'none'
+    if friction == 'realistic':
+        return 'realistic'
+    raise ValueError(f"friction must be True/'table', 'realistic' or False/'none', got "
+                     f'{friction!r}')
+
+
 def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float = 1000.0,
                  seed: int = 0, bias: bool = True, noise_sd: float = 0.3,
                  velocity_noise_sd: float = 0.003, jitter_sd_s: float = 50e-6,
-                 friction: bool = True, t0_s: float = 0.0, base_hz: float = 0.1,
-                 harmonics: int = 5, pause_hz: float = 0.2) -> dict:
+                 friction=True, t0_s: float = 0.0, base_hz: float = 0.1,
+                 harmonics: int = 5, pause_hz: float = 0.2, payload_kg: float = 0.0) -> dict:
     """
     Joint states of an arm following an exciting trajectory, with ground truth.
 
@@ -227,8 +243,12 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
     jitter_sd_s : float
         Sampling-instant jitter [s], clipped to +-0.4 periods (stamps strictly increase). The
         signals are sampled at the stamps.
-    friction : bool
-        Add the friction of :func:`friction_truth`.
+    friction : bool or str
+        ``True`` or ``'table'``: the friction of :func:`friction_truth` (Coulomb + Stribeck +
+        viscous, the estimator's prior family); ``'realistic'``: that of
+        :func:`~dgp_ros.dynamics.realistic.realistic_friction` (direction asymmetry, ``|v|^0.6``
+        viscous, exponential Stribeck, growing with the joint's true gravity torque: outside the
+        prior family, and pose-dependent); ``False`` or ``'none'``: none.
     t0_s : float
         Nominal first stamp [s].
     base_hz : float
@@ -238,14 +258,20 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
     pause_hz : float
         Rate of the common standstills [Hz] (0: none); see the module docstring. The peak
         velocity target is halved with pauses, since ``ds/dt`` reaches 2.
+    payload_kg : float
+        A payload at the flange [kg] (``realistic.PAYLOAD_MOUNT``) that the URDF does not have:
+        it is in the measured effort (gravity and inertia), not in ``tau_rb_urdf``.
 
     Returns
     -------
     dict
         ``robot`` (str), ``names`` (tuple of N joint names), ``rate_hz``; arrays ``t`` (k,) [s],
         ``q`` (k, N) [rad], ``qd`` (k, N) measured [rad/s], ``qd_true``, ``qdd`` (k, N) true
-        [rad/s^2], ``effort`` (k, N) measured [N m], ``tau_rb`` (k, N) true rigid-body torque,
-        ``friction`` (k, N) at the true velocity, ``bias`` (N,) [N m]; and
+        [rad/s^2], ``effort`` (k, N) measured [N m], ``tau_rb`` (k, N) true rigid-body torque
+        (with the payload), ``tau_rb_urdf`` (k, N) that of the URDF (without it), ``payload``
+        (k, N) their difference and ``payload_gravity`` (k, N) its gravity part [N m] (zeros
+        without a payload), ``friction`` (k, N) at the true velocity (and pose), ``bias`` (N,)
+        [N m]; ``friction_model`` ('table', 'realistic' or 'none'), ``payload_kg``; and
         ``nonpassive_fraction`` (samples with ``qd . (effort - tau_rb) < 0``, measured ``qd``)
         and ``raw_negative_power_fraction`` (samples with ``qd . effort < 0``);
         ``nonpassive_fraction_per_joint`` (N,) (samples with ``qd_j (effort_j - tau_rb_j) < 0``:
@@ -268,16 +294,33 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
     q, qs, qss = fourier_trajectory(tau_s, coef, q0, base_hz)
     qd_true = qs * ds[:, None]
     qdd = qss * (ds ** 2)[:, None] + qs * dds[:, None]
-    tau_rb = dyn(q, qd_true, qdd)
+    kind = _friction_kind(friction)
     n = len(names)
-    fric = friction_truth(robot, qd_true) if friction else np.zeros((k, n))
+    tau_rb_urdf = dyn(q, qd_true, qdd)
+    tau_rb, pay_g, grav = tau_rb_urdf, np.zeros((k, n)), None
+    if payload_kg or kind == 'realistic':
+        frame, offset = PAYLOAD_MOUNT[robot]
+        true = payload_inverse_dynamics(example_robot_urdf(robot), names, frame,
+                                        float(payload_kg), offset)
+        zero = np.zeros_like(q)
+        grav = true(q, zero, zero)                      # the joints' true gravity torque
+        if payload_kg:
+            tau_rb = true(q, qd_true, qdd)
+            pay_g = grav - dyn(q, zero, zero)
+    if kind == 'table':
+        fric = friction_truth(robot, qd_true)
+    elif kind == 'realistic':
+        fric = realistic_friction(robot, qd_true, grav, SIGN_VELOCITY)
+    else:
+        fric = np.zeros((k, n))
     b = FRICTION_TABLES[robot][:, 4].copy() if bias else np.zeros(n)
     effort = tau_rb + fric + b + noise_rng.normal(0.0, noise_sd, (k, n))
     qd = qd_true + noise_rng.normal(0.0, velocity_noise_sd, (k, n))
     return {
         'robot': robot, 'names': names, 'rate_hz': float(rate_hz), 't': t, 'q': q, 'qd': qd,
-        'qd_true': qd_true, 'qdd': qdd, 'effort': effort, 'tau_rb': tau_rb, 'friction': fric,
-        'bias': b,
+        'qd_true': qd_true, 'qdd': qdd, 'effort': effort, 'tau_rb': tau_rb,
+        'tau_rb_urdf': tau_rb_urdf, 'payload': tau_rb - tau_rb_urdf, 'payload_gravity': pay_g,
+        'friction': fric, 'bias': b, 'friction_model': kind, 'payload_kg': float(payload_kg),
         'nonpassive_fraction': negative_power_fraction(qd, effort - tau_rb),
         'nonpassive_fraction_per_joint': np.mean(qd * (effort - tau_rb) < 0.0, axis=0),
         'raw_negative_power_fraction': negative_power_fraction(qd, effort),
