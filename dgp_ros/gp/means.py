@@ -25,7 +25,8 @@ from typing import Optional
 import numpy as np
 from scipy.optimize import lsq_linear
 
-__all__ = ['PriorMean', 'ViscousMean', 'FrictionMean', 'ConstantMean', 'make_mean',
+__all__ = ['PriorMean', 'ViscousMean', 'FrictionMean', 'BasisFrictionMean', 'ConstantMean',
+           'make_mean',
            'mean_from_dict', 'prior_mean_diag', 'PRIORS']
 
 PRIORS = ('viscous', 'friction', 'friction+stribeck')
@@ -259,6 +260,77 @@ class FrictionMean(PriorMean):
         return m
 
 
+class BasisFrictionMean(PriorMean):
+    """
+    Friction with frozen coefficients, fitted elsewhere (the long history of the online learner).
+
+    ``m_d(v) v = F_v v + sum_k F_k tanh(v / eps_k) + sum_s S_s tanh(v / eps_s) exp(-(v / vs_s)^2)``
+    with every coefficient >= 0: even, non-negative and non-increasing in ``|v|`` like
+    :class:`FrictionMean`, so passive and bounded on a box by its corners. ``fit`` keeps the
+    coefficients (the GP learns what they leave).
+
+    Parameters
+    ----------
+    coef : (N, 1 + K + S) array
+        ``[F_v, F_1..F_K, S_1..S_S]`` per joint, >= 0 (force per velocity unit, force).
+    eps : (K,) Coulomb smoothing velocities; eps_s : Stribeck smoothing velocity;
+    vs : (S,) Stribeck velocities (velocity units).
+
+    """
+
+    name = 'friction_basis'
+
+    def __init__(self, coef=None, eps=(), eps_s: float = 0.01, vs=(), bias: bool = False):
+        super().__init__(bias)
+        self.coef = None if coef is None else np.maximum(np.asarray(coef, float), 0.0)
+        self.eps = np.asarray(eps, float)
+        self.eps_s = float(eps_s)
+        self.vs = np.asarray(vs, float)
+        if self.coef is not None:
+            self.bias = np.zeros(self.coef.shape[0])
+
+    def fit(self, Qd, Tau) -> 'BasisFrictionMean':
+        if self.coef is None:
+            raise ValueError('BasisFrictionMean holds fitted coefficients; it cannot fit')
+        if self.bias is None or self.bias.size != self.coef.shape[0]:
+            self.bias = np.zeros(self.coef.shape[0])
+        return self
+
+    def _diag_at(self, a: np.ndarray) -> np.ndarray:
+        K = self.eps.size
+        out = self.coef[:, 0] + 0.0 * a
+        for k in range(K):
+            out = out + self.coef[:, 1 + k] * _tanh_over(a, self.eps[k])
+        if self.vs.size:
+            t = _tanh_over(a, self.eps_s)
+            for s, vs in enumerate(self.vs):
+                out = out + self.coef[:, 1 + K + s] * t * np.exp(-(a / vs) ** 2)
+        return out
+
+    def diag(self, Qd):
+        return self._diag_at(np.abs(Qd))
+
+    def diag_bounds(self, lo, hi):
+        amax = np.maximum(np.abs(lo), np.abs(hi))
+        amin = np.where((lo <= 0) & (hi >= 0), 0.0, np.minimum(np.abs(lo), np.abs(hi)))
+        return self._diag_at(amax), self._diag_at(amin)
+
+    def diag_inf(self):
+        return self.coef[:, 0].copy()
+
+    def diag_ref(self):
+        scale = 10.0 * (float(self.eps.max()) if self.eps.size else 1.0)
+        return self._diag_at(np.full(self.coef.shape[0], scale))
+
+    def _params(self):
+        return {'coef': self.coef.tolist(), 'eps': self.eps.tolist(), 'eps_s': self.eps_s,
+                'vs': self.vs.tolist()}
+
+    @classmethod
+    def _from(cls, d):
+        return cls(np.asarray(d['coef'], float), d['eps'], float(d['eps_s']), d['vs'])
+
+
 class ConstantMean(PriorMean):
     """A constant force per output: the ARD baseline's prior (the mean of the data)."""
 
@@ -325,17 +397,22 @@ def _nnls_with_bias(bases, Tau):
     return coef, bias
 
 
-_BY_NAME = {'viscous': ViscousMean, 'friction': FrictionMean, 'constant': ConstantMean}
+_BY_NAME = {'viscous': ViscousMean, 'friction': FrictionMean, 'constant': ConstantMean,
+            'friction_basis': BasisFrictionMean}
 
 
 def make_mean(prior: str, kind: str, bias: bool = False) -> PriorMean:
     """
     Make the prior mean for a model kind: 'ard' always gets :class:`ConstantMean`.
 
-    prior : 'viscous' | 'friction' | 'friction+stribeck'
+    prior : 'viscous' | 'friction' | 'friction+stribeck', or a fitted :class:`PriorMean` (a
+    frozen prior such as :class:`BasisFrictionMean`; copied, its own bias setting kept).
     """
     if kind == 'ard':
         return ConstantMean()
+    if isinstance(prior, PriorMean):
+        import copy
+        return copy.deepcopy(prior)
     if prior == 'viscous':
         return ViscousMean(bias=bias)
     if prior in ('friction', 'friction+stribeck'):

@@ -21,7 +21,7 @@ import numpy as np
 from ._validation import as_matrix, as_pair
 from .hyper import apply_fixed_noise, hyper_from_params, initial_hyper, learn_hyper, scales
 from .kernels import KINDS, Structure
-from .means import make_mean, PRIORS
+from .means import make_mean, PriorMean, PRIORS
 from .passivity import check_mode, policy_class
 from .persistence import read_model, save_model
 from .policy import Certificate, PolicyOptions
@@ -146,7 +146,7 @@ class _DGP:
                 raise ValueError(f'{name} must be an integer >= {low}, got {v!r}')
         if not (self.domain_margin >= 0 and self.blend_width > 0):
             raise ValueError('domain_margin must be >= 0 and blend_width > 0')
-        if self.prior not in PRIORS:
+        if not isinstance(self.prior, PriorMean) and self.prior not in PRIORS:
             raise ValueError(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
         pw = self.projection_weights
         if pw is not None:
@@ -333,15 +333,33 @@ class _DGP:
         return self
 
     # ------------------------------------------------------------------ prediction
-    def predict(self, Qs, return_var: bool = False):
+    def predict(self, Qs, return_var: bool = False, q=None):
         """
         Damping force at Qs (k, N) (or (N,)): (k, N) [and the posterior variance (k, N)].
 
         Passive as the policy guarantees (``passivity``); the variance is the GP posterior
         variance (noise-free), force units squared. The bias is not included (``bias_``).
+        ``q`` (poses, k x N) is accepted for models whose damping depends on the pose; D here
+        depends on the velocity only, so it is not used.
         """
         tau, var, _ = self._answers(Qs, return_var, False)
         return (tau, var) if return_var else tau
+
+    def predict_residual(self, q=None, qd=None) -> np.ndarray:
+        """
+        Everything learned to explain the residual at (q, qd) (k, N) each: (k, N) N m.
+
+        The damping force ``predict(qd)`` plus the learned conservative correction of the
+        rigid-body model ``dV/dq(q)`` and the offsets (``correction_``, set by the online
+        learner; none for a model fitted directly). ``q`` is needed when the correction uses it.
+        """
+        if qd is None:
+            raise ValueError('predict_residual needs qd (velocities, k x N)')
+        tau = np.atleast_2d(self.predict(qd))
+        corr = getattr(self, 'correction_', None)
+        if corr is None:
+            return tau
+        return tau + corr(None if q is None else as_matrix(q, 'q', tau.shape[1]))
 
     def damping_matrix(self, Qs) -> np.ndarray:
         """Posterior damping matrix D(q), (k, N, N), with ``predict(q) = D(q) q``."""
@@ -486,6 +504,10 @@ def load_model(path) -> _DGP:
     try:
         model = model_class(f.kind)(**f.params)
         model._restore(f.posterior, f.policy, f.policy_arrays, f.certificate)
+        if f.correction is not None:
+            # the correction's bases live with the robot front end (a URDF needs pinocchio)
+            from dgp_ros.dynamics.conservative import Correction
+            model.correction_ = Correction.from_dict(f.correction)
     except Exception as exc:      # a crafted header: wrong names, types or policy state
         raise ValueError(f'{path}: malformed model file ({type(exc).__name__}: {exc})') \
             from None

@@ -27,6 +27,7 @@ import json
 import os
 import stat
 import tempfile
+from typing import Optional
 import zipfile
 
 import numpy as np
@@ -73,12 +74,18 @@ def save_model(model, path) -> None:
         arrays['hp_' + k] = np.asarray(getattr(post.hyper, k), float)
     meta, parr = model.policy_.state()
     arrays.update({'pol_' + k: v for k, v in parr.items()})
-    params = _jsonable(model.get_params())
+    params = model.get_params()
+    if not isinstance(params.get('prior'), str):      # a frozen prior: it is the mean record
+        params['prior'] = 'frozen'
+    params = _jsonable(params)
     params['hyperparams'] = None
     header = {'format': 'dgp_ros.gp', 'format_version': FORMAT_VERSION,
               'kind': post.structure.kind, 'N': post.N, 'n': post.n, 'params': params,
               'window': post.window, 'mean': post.mean.to_dict(), 'policy': meta,
               'certificate': model.policy_.cert.to_dict()}
+    correction = getattr(model, 'correction_', None)
+    if correction is not None:      # what the residual holds besides damping (online learner)
+        header['correction'] = _jsonable(correction.to_dict())
     header['sha256'] = _digest(arrays, header)
     arrays['header'] = np.array(json.dumps(header))
     path = os.fspath(path)
@@ -165,6 +172,7 @@ class ModelFile:
     policy: dict
     policy_arrays: dict
     certificate: dict
+    correction: Optional[dict] = None
 
 
 def read_model(path) -> ModelFile:
@@ -258,8 +266,10 @@ def _load(path: str) -> ModelFile:
                              arrays['jit'], [arrays[f'L{m}'] for m in range(N)],
                              [arrays[f'z{m}'] for m in range(N)], window, delta)
     pol_arrays = {k[4:]: v for k, v in arrays.items() if k.startswith('pol_')}
+    if params.get('prior') == 'frozen':
+        params['prior'] = mean
     return ModelFile(kind, params, post, header.get('policy', {}), pol_arrays,
-                     header.get('certificate', {}))
+                     header.get('certificate', {}), header.get('correction'))
 
 
 def _upgrade_v1(header: dict, arrays: dict, kind: str, N: int):

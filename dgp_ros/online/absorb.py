@@ -74,15 +74,20 @@ class Absorber:
         This is how new samples reach the model: one exact fit per batch instead of an update
         per sample (for 7 joints a windowed update cost about as much as a refit of 10 samples,
         and a refit also takes a buffer whose samples are replaced anywhere, not only the
-        oldest). The prior and the scales stay those of the last hyper-parameter fit.
+        oldest). The scales stay those of the last hyper-parameter fit; with ``prior='auto'`` the
+        frozen prior is the newest fit of the long history (``structure``).
         """
         t0 = time.perf_counter()
         with self._lock:
-            Q, T = self._buf.arrays()
             seq, generation, hyper = self._seq, self._generation, self._hyper
-            kw = dict(self.config.model_kwargs(), hyperparams=hyper)
+            if self._reselect_due():
+                self._reselect()        # retargets the buffer; the prior rides in the hyper
+            Q, T = self._buf.arrays()
+            kw = dict(self._model_kw(), hyperparams=self._with_prior(hyper))
+            correction = self._correction()
         try:
             model = self._factory(self.config.model, **kw).fit(Q, T, optimize=False)
+            model.correction_ = correction
             ok, why = sane(model, Q, T, probes=self.ABSORB_PROBES)
             if ok:
                 ok, why = provable(model, self.config.passivity)

@@ -158,6 +158,8 @@ class LearnerLoop:
                 self.sent_version = -1           # the next snapshot carries what is wanted
             elif kind == 'residuals':
                 self.residuals = bool(msg[1])
+            elif kind == 'names':
+                self.learner.set_joint_names(msg[1])
             elif kind == 'wait':
                 self._drain()
                 self.waits.append((msg[1], msg[2]))

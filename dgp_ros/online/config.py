@@ -29,11 +29,13 @@ PARAMS = {p.name: p for p in (
     ParamSpec('model', 'str', 'full', 'damping model: Full-D-GP, Diag-D-GP or the ARD-GP baseline',
               choices=KINDS),
     ParamSpec('passivity', 'str', 'projected', describe_modes(), choices=PASSIVITY_MODES),
-    ParamSpec('prior', 'str', 'friction+stribeck', 'prior mean of the damping: constant viscous '
-              'diagonal (the paper, an aircraft), Coulomb + viscous, or Coulomb + viscous + '
-              'Stribeck (joint friction; passive by construction)', choices=PRIORS),
-    ParamSpec('bias', 'bool', True, 'learn a per-joint constant bias with the prior (sensor '
-              'offsets, model error; reported apart from the damping force)'),
+    ParamSpec('prior', 'str', 'auto', 'prior mean of the damping: auto (the structure is chosen '
+              'from the data by cross-validation: friction family, offsets, the conservative '
+              'correction of the rigid-body model; fitted on the whole history), or fixed: '
+              'constant viscous diagonal (the paper), Coulomb + viscous, + Stribeck (fitted on '
+              'the buffer)', choices=('auto',) + tuple(PRIORS)),
+    ParamSpec('bias', 'bool', False, 'fixed prior only: learn a per-joint constant bias with the '
+              'prior (reported apart from the damping force); auto decides itself'),
     ParamSpec('buffer_size', 'int', 200, 'samples kept in the GP (its window)', low=2, high=5000),
     ParamSpec('min_samples', 'int', 20, 'prior-mean estimate until this many samples are '
               'buffered', low=1, high=5000),
@@ -41,6 +43,9 @@ PARAMS = {p.name: p for p in (
               'fit and on request only', low=0.0, high=86400.0),
     ParamSpec('optimize_every_n_refits', 'int', 5, 'hyper-parameters re-learned every n-th '
               'refit (0 = first fit only)', low=0, high=1000),
+    ParamSpec('buffer_policy', 'str', 'coverage', 'which sample a full buffer replaces: '
+              'coverage (one of the two closest in velocity: the buffer keeps the motion that was '
+              'visited) or recency (the oldest)', choices=('coverage', 'recency')),
     ParamSpec('selection', 'str', 'novelty', 'sample selection: all, or skip near-duplicates of '
               'buffered samples', choices=SELECTION_POLICIES),
     ParamSpec('selection_min_distance', 'float', 0.05, 'novelty threshold, in robust scales of '
@@ -75,8 +80,9 @@ PARAMS = {p.name: p for p in (
               read_only=True),
     ParamSpec('urdf_file', 'str', '', 'URDF path for inverse_dynamics=urdf; start-up only',
               max_len=4096, read_only=True),
-    ParamSpec('accel_half_window_s', 'float', 0.02, 'half window of the centred acceleration '
-              'filter (s): learning trails the stream by this much; answers are immediate',
+    ParamSpec('accel_half_window_s', 'float', 0.05, 'half window of the centred acceleration '
+              'filter (s): learning trails the stream by this much; answers are immediate (20 ms '
+              'turned torque-sensor noise into target noise through M(q) on a real Panda)',
               low=0.002, high=0.2),
     ParamSpec('negative_power_warn_fraction', 'float', 0.1, 'WARN when more than this fraction '
               'of the recent learned samples has qd . target < 0 (the data are not damping)',
@@ -103,6 +109,7 @@ class EstimatorConfig:
     min_samples: int = PARAMS['min_samples'].default
     refit_period_s: float = PARAMS['refit_period_s'].default
     optimize_every_n_refits: int = PARAMS['optimize_every_n_refits'].default
+    buffer_policy: str = PARAMS['buffer_policy'].default
     selection: str = PARAMS['selection'].default
     selection_min_distance: float = PARAMS['selection_min_distance'].default
     selection_scale: List[float] = field(default_factory=list)
@@ -209,8 +216,9 @@ class EstimatorConfig:
 
         Window, passivity, prior.
         """
-        kw = {'passivity': self.passivity, 'window': self.buffer_size, 'prior': self.prior,
-              'bias': bool(self.bias)}
+        kw = {'passivity': self.passivity, 'window': self.buffer_size,
+              'prior': 'viscous' if self.prior == 'auto' else self.prior,
+              'bias': bool(self.bias) and self.prior != 'auto'}
         if self.operating_domain and self.passivity == 'certified':
             k = len(self.operating_domain) // 2
             kw['operating_domain'] = (list(self.operating_domain[:k]),

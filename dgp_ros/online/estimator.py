@@ -233,6 +233,7 @@ class OnlineEstimator:
         h.accept()
         if self._names is None and names:
             self._names = list(names)
+            self._learner.set_joint_names(self._names)     # the correction basis needs them
         return stamp, names, qd, tau, q
 
     def _learning_time(self, stamp: float) -> float:

@@ -111,6 +111,9 @@ class LearnerHealth:
     last_refit_duration_s: Optional[float] = None
     last_refit_optimized: Optional[bool] = None
     refit_durations: deque = field(default_factory=lambda: deque(maxlen=1000))
+    structure: str = ''               # prior='auto': the chosen friction / offsets / correction
+    structure_scores: dict = field(default_factory=dict)   # its best CV scores
+    correction_basis: str = ''        # what the conservative correction is built from
 
     def refit_done(self, ok: bool, seconds: float, stamp, optimized: bool, error: str,
                    wall_time: float) -> None:
@@ -292,6 +295,11 @@ class LearnerReport:
                 'bias': (None if self._model is None or not self.config.bias else
                          [round(float(b), 6) for b in self._model.bias_]),
                 'version': self._version,
+                'structure': self.health.structure,
+                'structure_scores': dict(self.health.structure_scores),
+                'correction_basis': self.health.correction_basis,
+                'offsets': (None if self._param is None or not self._param.offsets else
+                            [round(float(b), 6) for b in self._param.bias]),
                 'warnings': self._warnings(),
             }
             d.update(self.health.counters())

@@ -80,13 +80,16 @@ class JobRunner:
         optimize = (self._model is None or self._hyper is None or
                     (cfg.optimize_every_n_refits > 0 and k % cfg.optimize_every_n_refits == 0)
                     or self._hypers_outgrown())
+        if self.auto:
+            self._reselect()            # prior='auto': structure and correction on the history
         Q, T = self._buf.arrays()
         # re-learning on data like the last optimum's refines it (no restarts); after the buffer
         # doubled the data changed enough to search again from scratch
         warm = self._hyper is not None and not self._hypers_outgrown()
         return RefitJob('fit', dataclasses.replace(cfg), self._seq, self._generation,
-                        self._last_t, Q=Q, T=T, optimize=optimize, hyper=self._hyper,
-                        warm=warm)
+                        self._last_t, Q=Q, T=T, optimize=optimize,
+                        hyper=self._with_prior(self._hyper),
+                        warm=warm, kw=self._model_kw(cfg), correction=self._correction())
 
     def request_refit(self) -> Tuple[bool, str]:
         """Refit now (async: start it in the background). Returns (ok, message)."""
@@ -142,8 +145,10 @@ class JobRunner:
                 with self._lock:
                     newer = self._seq != job.seq
                     Q, T = self._buf.arrays() if newer else (None, None)
+                    correction = self._correction()
                 if newer:
                     model.fit(Q, T, optimize=False)
+                    model.correction_ = correction
                     ok, why = provable(model, cfg.passivity)
         except Exception as exc:
             ok, why = False, f'{type(exc).__name__}: {exc}'

@@ -39,19 +39,20 @@ from .health import LearnerHealth, LearnerReport, POWER_WINDOW
 from .jobs import JobRunner
 from .selection import Buffer, Selector
 from .snapshot import Snapshot
+from .structure import StructureMixin
 from .worker import provable
 
 __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
 
 #: structural fields: changing one at run time drops the model and refits
-STRUCTURAL = ('model', 'passivity', 'prior', 'bias', 'buffer_size', 'joints',
+STRUCTURAL = ('model', 'passivity', 'prior', 'bias', 'buffer_size', 'buffer_policy', 'joints',
               'operating_domain', 'inverse_dynamics', 'robot_description', 'urdf_file',
               'accel_half_window_s')
 #: fields of the front end: changing one resets the learner
 FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints')
 
 
-class Learner(Absorber, JobRunner, LearnerReport):
+class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
     """
     Online learning of a D-GP from a stream of measurements (module docstring).
 
@@ -93,6 +94,8 @@ class Learner(Absorber, JobRunner, LearnerReport):
             if self._inverse is not None else None)
         self._learned_power: deque = deque(maxlen=POWER_WINDOW)
         self._buf: Optional[Buffer] = None
+        self._history = None               # long history of prior='auto' (structure.py)
+        self._param = None
         self._selector = Selector()
         self._seq = 0                     # samples ever added (orders the catch-up)
         self._fresh = 0                   # samples added since the model last absorbed them
@@ -186,7 +189,7 @@ class Learner(Absorber, JobRunner, LearnerReport):
             if self._N is None:
                 self._N = qd.size
             if self._buf is None:
-                self._buf = Buffer(self.config.buffer_size, self._N)
+                self._buf = Buffer(self.config.buffer_size, self._N, self.config.buffer_policy)
             if self._last_t is not None and t < self._last_t:
                 # documented policy: keep model and buffer, restart the refit clock, count it
                 self.health.time_jumps_back += 1
@@ -226,7 +229,7 @@ class Learner(Absorber, JobRunner, LearnerReport):
         else:
             h.samples_rate_limited += 1
         if self._inverse is None:
-            return (self._add(stamp, qd, tau) if want else False), []
+            return (self._add(stamp, qd, tau, q) if want else False), []
         try:
             done = self._front.push(stamp, q, qd, tau, want=want)
         except Exception as exc:        # a plugin that fails: the message is still answered
@@ -235,22 +238,30 @@ class Learner(Absorber, JobRunner, LearnerReport):
             return False, []
         for r in done:
             if np.all(np.isfinite(r.residual)):
-                self._add(r.stamp_s, r.qd, r.residual)
+                self._add(r.stamp_s, r.qd, r.residual, r.q, r.qdd)
         return want, done
 
-    def _add(self, stamp: float, qd: np.ndarray, target: np.ndarray) -> bool:
-        """Add one learning sample to the buffer and the model unless it is a near-duplicate."""
+    def _add(self, stamp: float, qd: np.ndarray, residual: np.ndarray, q=None,
+             qdd=None) -> bool:
+        """
+        Learn one sample: the long history always, the buffer unless it is a near-duplicate.
+
+        residual (N,): what the damping and (``prior='auto'``) the correction explain; the
+        buffer keeps it minus the current correction (``structure``).
+        """
         h = self.health
-        self._learned_power.append(float(qd @ target))
+        self._learned_power.append(float(qd @ residual))
         self._recent_q.append(qd)
-        if self._selector.outlier(self.config, self._buf, qd, target):
+        if self._selector.outlier(self.config, self._buf, qd, residual):
             h.samples_outliers += 1
             return False
+        yt = self._history_push(stamp, q, qd, qdd, residual)
+        target = self._target(residual, yt)
         if not self._selector.novel(self.config, self._buf, qd):
             h.samples_skipped += 1
             return False
         self._last_added_t = stamp
-        self._buf.append(qd, target)
+        self._buf.append(qd, target, (residual, yt) if self.auto else None)
         self._selector.additions += 1
         self._seq += 1
         self._fresh += 1
@@ -274,6 +285,9 @@ class Learner(Absorber, JobRunner, LearnerReport):
         """(mean, std): the passive prior fitted to the buffer, refitted per tenth of it."""
         # a 7-joint friction prior costs ~15 ms: refitted on every learned sample it held the
         # answers while the first fit ran
+        auto = self._auto_prior()
+        if auto is not None:
+            return auto
         if self._prior is None or self._seq >= self._prior[2] + max(1, self._prior[2] // 10):
             N = self._N
             Q, T = self._buf.arrays() if self._buf is not None and self._buf.size else \
@@ -359,7 +373,7 @@ class Learner(Absorber, JobRunner, LearnerReport):
             self._init_state(keep_health=True)
             self._N = N
             if data is not None:
-                self._buf = Buffer.of(config.buffer_size, *data)
+                self._buf = Buffer.of(config.buffer_size, *data, policy=config.buffer_policy)
                 self._refit_requested = True
             return f'{", ".join(changed)} changed: model dropped, refit on the next sample'
 
@@ -377,6 +391,10 @@ class Learner(Absorber, JobRunner, LearnerReport):
             if self._model is None:
                 raise RuntimeError('no trained model to save yet')
             model = copy.deepcopy(self._model)
+        if self._reselect_due() and self._model is not None:
+            self._absorb()          # the saved prior and correction see the whole history
+            with self._lock:
+                model = copy.deepcopy(self._model)
         path = os.path.abspath(path)
         model.save(path)
         return path
@@ -405,7 +423,7 @@ class Learner(Absorber, JobRunner, LearnerReport):
             raise ValueError(why)
         with self._lock:
             self._N = X.shape[1]
-            self._buf = Buffer.of(cfg.buffer_size, X, Y)
+            self._buf = Buffer.of(cfg.buffer_size, X, Y, policy=cfg.buffer_policy)
             self._seq = self._buf.size
             self._model = model
             self._hyper = model.hyperparams_

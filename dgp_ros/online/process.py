@@ -124,6 +124,8 @@ class LearnerProcess:
         proc.start()
         cmd_r.close()
         out_w.close()
+        if getattr(self, '_names_hint', None):
+            cmd_w.send(('names', self._names_hint))
         if not out_r.poll(self.START_TIMEOUT_S):
             proc.kill()
             raise ValueError('the learner process did not start within '
@@ -221,6 +223,11 @@ class LearnerProcess:
     # ------------------------------------------------------------------ the Learner interface
     def joint_names(self) -> list:
         return list(self.joint_names_)
+
+    def set_joint_names(self, names) -> None:
+        """Tell the learner the joint names of the stream (kept for a restarted child)."""
+        self._names_hint = list(names)
+        self._send('names', self._names_hint)
 
     def set_variance(self, on: bool) -> None:
         self._variance = bool(on)

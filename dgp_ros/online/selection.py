@@ -26,22 +26,97 @@ __all__ = ['Buffer', 'Selector']
 
 
 class Buffer:
-    """Fixed-capacity FIFO of (qd, tau) rows, numpy backed (oldest first on read)."""
+    """
+    Fixed-capacity buffer of (qd, tau) rows, numpy backed, with optional per-row extras.
 
-    def __init__(self, capacity: int, N: int):
+    ``policy='recency'``: a FIFO (the oldest row is replaced). ``policy='coverage'``: once full,
+    a new row replaces one of the two closest rows (velocity distance in ``scale`` units, the
+    one whose second-nearest neighbour is closer), so the buffer keeps the velocities that were
+    visited, not the last seconds; O(capacity N) per row with a cached distance matrix. Reads
+    (``arrays``) are in slot order for coverage (the fit does not depend on the order).
+    Extras: the raw residual (N,) and the correction columns (N, C) of each row, kept so that
+    the targets can be recomputed when the parametric part is refitted (``retarget``).
+    """
+
+    def __init__(self, capacity: int, N: int, policy: str = 'recency'):
         self.capacity, self.N = int(capacity), int(N)
+        self.policy = policy
         self._q = np.zeros((self.capacity, self.N))
         self._t = np.zeros((self.capacity, self.N))
+        self._r: Optional[np.ndarray] = None
+        self._y: Optional[np.ndarray] = None
         self._start = 0
         self.size = 0
+        self._d: Optional[np.ndarray] = None       # coverage: distances between slots
+        self.scale: Optional[np.ndarray] = None    # coverage: velocity scale (N,), set when full
 
-    def append(self, q, t) -> None:
-        i = (self._start + self.size) % self.capacity
-        self._q[i], self._t[i] = q, t
+    def append(self, q, t, extra=None) -> int:
+        """Store a row (replacing one when full, by the policy); return its slot."""
         if self.size < self.capacity:
+            i = (self._start + self.size) % self.capacity
             self.size += 1
+        elif self.policy == 'coverage':
+            i = self._coverage_slot(np.asarray(q, float))
         else:
+            i = self._start
             self._start = (self._start + 1) % self.capacity
+        self._q[i], self._t[i] = q, t
+        if extra is not None:
+            self._store_extra(i, *extra)
+        if self.policy == 'coverage' and self._d is not None:
+            self._update_distances(i)
+        elif self.policy == 'coverage' and self.size == self.capacity:
+            self._init_distances()
+        return i
+
+    def _store_extra(self, i: int, r, y) -> None:
+        if self._r is None:
+            self._r = np.zeros((self.capacity, self.N))
+            if y is not None:
+                self._y = np.zeros((self.capacity,) + np.shape(y))
+        self._r[i] = r
+        if self._y is not None and y is not None:
+            self._y[i] = y
+
+    def _init_distances(self) -> None:
+        Q = self._q
+        med = np.median(Q, axis=0)
+        mad = 1.4826 * np.median(np.abs(Q - med), axis=0)
+        self.scale = np.maximum(mad, 1e-3 * (np.abs(Q).mean(axis=0) + 1e-3))
+        Z = Q / self.scale
+        sq = np.einsum('ij,ij->i', Z, Z)
+        d = np.sqrt(np.maximum(sq[:, None] + sq[None, :] - 2.0 * Z @ Z.T, 0.0))
+        np.fill_diagonal(d, np.inf)
+        self._d = d
+
+    def _update_distances(self, i: int) -> None:
+        d = np.sqrt((((self._q - self._q[i]) / self.scale) ** 2).sum(axis=1))
+        d[i] = np.inf
+        self._d[i], self._d[:, i] = d, d
+
+    def _coverage_slot(self, q: np.ndarray) -> int:
+        """Return the slot a new row replaces: one of the closest pair (class docstring)."""
+        d = self._d
+        near = d.min(axis=1)
+        a = int(np.argmin(near))
+        b = int(np.argmin(d[a]))
+        # the new row itself may be the closest: then it replaces its nearest neighbour only if
+        # that is closer to it than the closest pair is to each other
+        dn = np.sqrt((((self._q - q) / self.scale) ** 2).sum(axis=1))
+        k = int(np.argmin(dn))
+        if dn[k] < near[a]:
+            return k
+        da = np.partition(d[a], 1)[1]
+        db = np.partition(d[b], 1)[1]
+        return a if da < db else b
+
+    def retarget(self, correction) -> None:
+        """Recompute the targets as residual - ``correction(columns)`` (k, N) for every row."""
+        if self._r is None or self.size == 0:
+            return
+        n = self.size
+        y = None if self._y is None else self._y[:n]
+        self._t[:n] = self._r[:n] - correction(y)
 
     def velocities_unordered(self) -> np.ndarray:
         """Return the buffered velocities in storage order (no copy), (size, N)."""
@@ -53,14 +128,15 @@ class Buffer:
         return (self._q[:n], self._t[:n]) if n < self.capacity else (self._q, self._t)
 
     def arrays(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Return copies of (Qd, Tau), (size, N) each, oldest first."""
+        """Return copies of (Qd, Tau), (size, N) each, oldest first (slot order for coverage)."""
         idx = (self._start + np.arange(self.size)) % self.capacity
         return self._q[idx].copy(), self._t[idx].copy()
 
     @classmethod
-    def of(cls, capacity: int, Qd: np.ndarray, Tau: np.ndarray) -> 'Buffer':
+    def of(cls, capacity: int, Qd: np.ndarray, Tau: np.ndarray,
+           policy: str = 'recency') -> 'Buffer':
         """Make a buffer holding the newest ``capacity`` rows of ``Qd`` and ``Tau``."""
-        b = cls(capacity, Qd.shape[1])
+        b = cls(capacity, Qd.shape[1], policy)
         for q, t in zip(Qd[-capacity:], Tau[-capacity:]):
             b.append(q, t)
         return b
@@ -84,6 +160,7 @@ class Selector:
     def __init__(self):
         self.last_added_stamp: Optional[float] = None
         self._far_run = 0
+        self._trust = 0              # samples for which far ones are learned (a regime change)
         self._stats = None           # (buffer size, additions at computation, mq, sq, mt, st)
         self.additions = 0
 
@@ -136,9 +213,14 @@ class Selector:
                np.max(np.abs(target - mt) / st) > self.OUTLIER_Z)
         if not far:
             self._far_run = 0
+            self._trust = max(0, self._trust - 1)
             return False
         self._far_run += 1
-        return self._far_run < self.OUTLIER_RUN
+        if self._far_run >= self.OUTLIER_RUN:
+            # the motion changed: trust far samples for a buffer's worth of samples (a coverage
+            # buffer keeps the old regime, so its statistics lag the new one for long)
+            self._trust = buf.capacity
+        return self._far_run < self.OUTLIER_RUN and self._trust == 0
 
     def novel(self, config, buf: Buffer, qd: np.ndarray) -> bool:
         """Return True unless ``qd`` is a near-duplicate of a buffered sample."""

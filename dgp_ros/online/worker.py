@@ -43,6 +43,8 @@ class RefitJob:
     warm: bool = False
     model: object = None
     source: object = None       # 'recertify': the served model ``model`` is a copy of
+    kw: Optional[dict] = None   # 'fit': the model's constructor arguments (else the config's)
+    correction: object = None   # 'fit': what the targets T exclude (saved with the model)
 
 
 @dataclass
@@ -118,12 +120,13 @@ def run_job(job: RefitJob, factory: Callable) -> RefitResult:
         if job.kind == 'recertify':
             model = job.model
         else:
-            kw = cfg.model_kwargs()
+            kw = dict(job.kw) if job.kw is not None else cfg.model_kwargs()
             if job.hyper is not None:
                 kw['hyperparams'] = job.hyper
                 kw['warm_start'] = job.warm
             model = factory(cfg.model, **kw)
             model.fit(job.Q, job.T, optimize=job.optimize)
+            model.correction_ = job.correction
             ok, why = sane(model, job.Q, job.T)
             if not ok:
                 return RefitResult(job, model, False, why, time.perf_counter() - t0)

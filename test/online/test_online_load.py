@@ -62,7 +62,7 @@ def test_async_refit_samples_arriving_meanwhile_are_replayed():
     ev = threading.Event()
     est = OnlineEstimator(EstimatorConfig(model='diag', passivity='projected', buffer_size=50,
                                           min_samples=20, refit_period_s=0, selection='all',
-                                          min_sample_interval_s=0.0,
+                                          min_sample_interval_s=0.0, buffer_policy='recency',
                                           joints=['a', 'b', 'c'], refit_mode='async'),
                           model_factory=_slow_factory(ev))
     Q, T = _stream(200)

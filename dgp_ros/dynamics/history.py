@@ -1,0 +1,376 @@
+"""
+The parametric part of a residual, fitted on the whole learned history, and its structure.
+
+The residual the online learner sees (``effort - tau_rb`` on an arm, the force itself without a
+rigid-body model) is explained by three linear parts, each per joint j:
+
+* friction ``f_j(v) . c_j`` with ``c_j >= 0``: viscous ``v``, Coulomb ``tanh(v / eps_k)`` at the
+  fixed smoothing velocities :data:`FRICTION_EPS` (linear: no search, exact statistics) and
+  Stribeck ``tanh(v / EPS_S) exp(-(v / vs)^2)`` at :data:`STRIBECK_VS`. Every column is odd and
+  its coefficient non-negative, so the friction is passive (``m_d(v) >= 0``,
+  :class:`~dgp_ros.gp.means.BasisFrictionMean`);
+* an offset ``b_j`` (not dissipative, not conservative);
+* a conservative correction ``[Y(q) theta]_j`` of the rigid-body model
+  (:mod:`~dgp_ros.dynamics.conservative`).
+
+The history is kept as sufficient statistics (the Gram matrix of the columns and their product
+with the residual, per joint) in blocks of :data:`BLOCK_S` seconds of learning time: O(1) memory
+and O(N C^2) per sample whatever the length of the run. The structure (which friction family,
+offsets or not, the correction or not) is chosen by forward-chaining cross-validation over the
+last blocks: fit on everything before a block, score on the block, with the columns that are
+applied (a correction's training-only columns are not). The score is the mean over joints of the
+pooled squared error over the residual's variance. Offsets need a clear win (they drift with the
+pose on a real arm: learned on one part of a motion they are wrong on the next, and adjacent
+blocks cannot show that), and the simplest structure close to the best is taken.
+"""
+from __future__ import annotations
+
+from collections import deque
+import copy
+from dataclasses import dataclass, field
+from typing import List, Optional, Tuple
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.optimize import lsq_linear
+
+__all__ = ['LongHistory', 'ParametricFit', 'FRICTION_EPS', 'STRIBECK_VS', 'FAMILIES']
+
+#: Coulomb smoothing velocities (velocity units: rad/s on an arm)
+FRICTION_EPS = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2)
+#: Stribeck velocities and the smoothing of their sign
+STRIBECK_VS = (0.05, 0.2)
+EPS_S = 0.01
+F = 1 + len(FRICTION_EPS) + len(STRIBECK_VS)
+#: friction families -> their columns among the F per joint
+FAMILIES = {'none': [], 'viscous': [0], 'friction': list(range(1 + len(FRICTION_EPS))),
+            'friction+stribeck': list(range(F))}
+#: learning-time length of a statistics block (s), and the blocks scored by cross-validation
+BLOCK_S = 1.5
+FOLDS = 3
+#: a cross-validation fold needs this fraction of the history before its test block
+MIN_TRAIN_FRACTION = 0.4
+#: offsets are selected only when they cut the CV score by more than this fraction
+OFFSET_MARGIN = 0.1
+#: the simplest structure within this fraction of the best CV score is chosen
+SIMPLER_MARGIN = 0.05
+
+
+def friction_columns(v: np.ndarray) -> np.ndarray:
+    """Friction columns of velocities v (k,) -> (k, F) (module docstring)."""
+    v = np.asarray(v, float)
+    cols = [v] + [np.tanh(v / e) for e in FRICTION_EPS]
+    t = np.tanh(v / EPS_S)
+    cols += [t * np.exp(-(v / vs) ** 2) for vs in STRIBECK_VS]
+    return np.stack(cols, axis=-1)
+
+
+class _Stats:
+    """Per-joint sufficient statistics over local columns [friction F, offset 1, correction C]."""
+
+    def __init__(self, N: int, L: int):
+        self.Gt = np.zeros((N, L, L))       # training columns
+        self.bt = np.zeros((N, L))
+        self.Gd = np.zeros((N, L, L))       # applied columns (scoring)
+        self.bd = np.zeros((N, L))
+        self.yy = np.zeros(N)
+        self.sy = np.zeros(N)
+        self.n = 0
+
+    def add_rows(self, At: np.ndarray, Ad: np.ndarray, y: np.ndarray) -> None:
+        """Add k samples: At, Ad (k, N, L), y (k, N)."""
+        self.Gt += np.einsum('knl,knm->nlm', At, At)
+        self.bt += np.einsum('knl,kn->nl', At, y)
+        if Ad is At:
+            self.Gd, self.bd = self.Gt, self.bt
+        else:
+            if self.Gd is self.Gt:
+                self.Gd, self.bd = self.Gt.copy(), self.bt.copy()
+            self.Gd += np.einsum('knl,knm->nlm', Ad, Ad)
+            self.bd += np.einsum('knl,kn->nl', Ad, y)
+        self.yy += np.einsum('kn,kn->n', y, y)
+        self.sy += y.sum(axis=0)
+        self.n += y.shape[0]
+
+    def __iadd__(self, o: '_Stats') -> '_Stats':
+        shared = self.Gd is self.Gt
+        self.Gt += o.Gt
+        self.bt += o.bt
+        if not shared:
+            self.Gd += o.Gd
+            self.bd += o.bd
+        self.yy += o.yy
+        self.sy += o.sy
+        self.n += o.n
+        return self
+
+    def copy(self) -> '_Stats':
+        c = copy.copy(self)
+        c.Gt, c.bt, c.yy, c.sy = self.Gt.copy(), self.bt.copy(), self.yy.copy(), self.sy.copy()
+        if self.Gd is self.Gt:
+            c.Gd, c.bd = c.Gt, c.bt
+        else:
+            c.Gd, c.bd = self.Gd.copy(), self.bd.copy()
+        return c
+
+
+@dataclass
+class ParametricFit:
+    """
+    A fitted structure: ``family``, ``offsets``, ``conservative`` and the coefficients.
+
+    coef : (N, F) friction (>= 0); bias : (N,) offsets; theta : (C,) correction; scores :
+    cross-validation score of every candidate ``(family, offsets, conservative) -> score``
+    (empty before there are blocks to score); basis : the correction's basis or None.
+    """
+
+    family: str
+    offsets: bool
+    conservative: bool
+    coef: np.ndarray
+    bias: np.ndarray
+    theta: np.ndarray
+    basis: object = None
+    scores: dict = field(default_factory=dict)
+    samples: int = 0
+
+    def label(self) -> str:
+        parts = [self.family, 'offsets' if self.offsets else 'no offsets']
+        if self.basis is not None:
+            parts.append('correction' if self.conservative else 'no correction')
+        return ', '.join(parts)
+
+    def friction_mean(self):
+        """Return the friction as a frozen passive prior mean of the D-GP."""
+        from dgp_ros.gp.means import BasisFrictionMean
+        return BasisFrictionMean(self.coef, FRICTION_EPS, EPS_S, STRIBECK_VS)
+
+    def train_correction(self, Yt: Optional[np.ndarray]) -> np.ndarray:
+        """Return what the non-damping parts explain of samples with columns Yt (k, N, C)."""
+        if Yt is None or not self.conservative or self.theta.size == 0:
+            return np.broadcast_to(self.bias, (1 if Yt is None else Yt.shape[0],
+                                               self.bias.size))
+        return np.einsum('knc,c->kn', Yt, self.theta) + self.bias
+
+    def correction(self):
+        """Return the applied non-damping part as a :class:`~.conservative.Correction`."""
+        from .conservative import Correction
+        use = self.conservative and self.basis is not None
+        return Correction(self.basis if use else None, self.theta if use else np.zeros(0),
+                          self.bias)
+
+
+class LongHistory:
+    """
+    Sufficient statistics of the learned history and the structure selection (module docstring).
+
+    Parameters
+    ----------
+    N : int
+        Joints (outputs).
+    basis : conservative basis or None
+        :func:`~dgp_ros.dynamics.conservative.correction_basis`; None without positions.
+    default_family : str
+        The friction family used until cross-validation can choose.
+    offsets : bool
+        Whether offsets are a candidate. Without a rigid-body model the effort *is* the damping
+        force (an aircraft's aerodynamic force): there is no offset to set apart.
+
+    """
+
+    def __init__(self, N: int, basis=None, default_family: str = 'friction',
+                 offsets: bool = True):
+        self.N = int(N)
+        self.basis = basis
+        self.C = 0 if basis is None else int(basis.C)
+        self.L = F + 1 + self.C
+        self.default_family = default_family
+        self.offsets = bool(offsets)
+        self._older = _Stats(self.N, self.L)
+        self._blocks: deque = deque()
+        self._cur = _Stats(self.N, self.L)
+        self._rows: List[tuple] = []
+        self._block_t0: Optional[float] = None
+        P = self.N * F + self.N + self.C
+        self.P = P
+        self._idx = [np.r_[np.arange(j * F, (j + 1) * F), self.N * F + j,
+                           self.N * F + self.N + np.arange(self.C)] for j in range(self.N)]
+        self.samples = 0
+
+    # ------------------------------------------------------------------ data
+    def push(self, stamp: float, q, qd, qdd, r) -> Optional[np.ndarray]:
+        """
+        Add one sample (residual r (N,) at q, qd, qdd); return its correction columns (N, C).
+
+        The training columns are returned so that the learner can subtract the fitted
+        correction from the samples it keeps (None without a basis).
+        """
+        qd = np.asarray(qd, float)
+        Ft = friction_columns(qd)                              # (N, F)
+        one = np.ones((self.N, 1))
+        Yt = Yd = None
+        if self.basis is not None:
+            Yt, Yd = self.basis.columns(np.asarray(q, float), qd, np.asarray(qdd, float))
+            At = np.concatenate([Ft, one, Yt], axis=1)
+            Ad = At if Yd is Yt else np.concatenate([Ft, one, Yd], axis=1)
+        else:
+            At = Ad = np.concatenate([Ft, one], axis=1)
+        if self._block_t0 is None:
+            self._block_t0 = stamp
+        elif not (0.0 <= stamp - self._block_t0 < BLOCK_S):
+            self._close_block(stamp)
+        self._rows.append((At, Ad, np.asarray(r, float)))
+        self.samples += 1
+        if len(self._rows) >= 64:
+            self._flush()
+        return Yt
+
+    def _flush(self) -> None:
+        if not self._rows:
+            return
+        At = np.array([a for a, _, _ in self._rows])
+        Ad = At if self.basis is None else np.array([d for _, d, _ in self._rows])
+        y = np.array([r for _, _, r in self._rows])
+        self._cur.add_rows(At, Ad, y)
+        self._rows = []
+
+    def _close_block(self, stamp: float) -> None:
+        self._flush()
+        if self._cur.n:
+            self._blocks.append(self._cur)
+            while len(self._blocks) > FOLDS:
+                self._older += self._blocks.popleft()
+        self._cur = _Stats(self.N, self.L)
+        self._block_t0 = stamp
+
+    def copy(self) -> 'LongHistory':
+        """Duplicate the statistics (what a background fit works on)."""
+        self._flush()
+        c = copy.copy(self)
+        c._older = self._older.copy()
+        c._blocks = deque(b.copy() for b in self._blocks)
+        c._cur = self._cur.copy()
+        c._rows = []
+        return c
+
+    # ------------------------------------------------------------------ fitting
+    def _total(self, blocks, with_current: bool) -> _Stats:
+        t = self._older.copy()
+        for b in blocks:
+            t += b
+        if with_current:
+            self._flush()
+            t += self._cur
+        return t
+
+    def _global(self, st: _Stats) -> Tuple[np.ndarray, np.ndarray]:
+        G = np.zeros((self.P, self.P))
+        b = np.zeros(self.P)
+        for j, idx in enumerate(self._idx):
+            G[np.ix_(idx, idx)] += st.Gt[j]
+            b[idx] += st.bt[j]
+        return G, b
+
+    def _mask(self, family: str, offsets: bool, conservative: bool) -> np.ndarray:
+        m = np.zeros(self.P, bool)
+        cols = FAMILIES[family]
+        for j in range(self.N):
+            m[j * F + np.asarray(cols, int)] = True
+            m[self.N * F + j] = offsets
+        if conservative and self.C:
+            m[self.N * F + self.N:] = True
+        return m
+
+    def _solve(self, G: np.ndarray, b: np.ndarray, mask: np.ndarray, n: int) -> np.ndarray:
+        """Bounded least squares from the statistics: friction >= 0, the rest free."""
+        theta = np.zeros(self.P)
+        idx = np.flatnonzero(mask)
+        if idx.size == 0 or n == 0:
+            return theta
+        Gs = G[np.ix_(idx, idx)].copy()
+        ridge = np.full(idx.size, 0.0)
+        is_c = idx >= self.N * F + self.N
+        ridge[is_c] = getattr(self.basis, 'RIDGE', 0.0)
+        d = np.diag(Gs).copy()
+        Gs[np.diag_indices_from(Gs)] += ridge + 1e-9 * d + 1e-12 * (d.mean() + 1e-300)
+        lb = np.where(idx < self.N * F, 0.0, -np.inf)
+        cf = cho_factor(Gs)
+        x = cho_solve(cf, b[idx])
+        if np.any(x < lb):
+            R = np.triu(cf[0]) if not cf[1] else cf[0].T
+            z = solve_triangular(R, b[idx], trans='T')
+            x = lsq_linear(R, z, bounds=(lb, np.inf), method='bvls', tol=1e-10).x
+            x = np.maximum(x, lb)
+        theta[idx] = x
+        return theta
+
+    def _sse(self, st: _Stats, theta: np.ndarray) -> np.ndarray:
+        """Squared error per joint of ``theta`` on ``st`` with the applied columns, (N,)."""
+        out = np.empty(self.N)
+        for j, idx in enumerate(self._idx):
+            t = theta[idx]
+            out[j] = st.yy[j] - 2.0 * t @ st.bd[j] + t @ st.Gd[j] @ t
+        return np.maximum(out, 0.0)
+
+    def candidates(self) -> List[tuple]:
+        """Every structure ``(family, offsets, conservative)`` there is to choose from."""
+        cons = (False, True) if self.C else (False,)
+        offs = (False, True) if self.offsets else (False,)
+        return [(f, o, c) for f in FAMILIES for o in offs for c in cons]
+
+    def select(self) -> ParametricFit:
+        """Choose the structure by forward-chaining CV (module docstring) and fit it on all."""
+        total = self._total(self._blocks, True)
+        scores = {}
+        blocks = list(self._blocks)
+        folds = []
+        for i in range(len(blocks)):
+            train = self._total(blocks[:i], False)
+            # a fold trained on a short start extrapolates the pose parts wildly: score only
+            # on blocks with at least MIN_TRAIN_FRACTION of the history before them
+            if train.n >= MIN_TRAIN_FRACTION * total.n and blocks[i].n:
+                folds.append((self._global(train), train.n, blocks[i]))
+        if folds and total.n > 1:
+            var = np.maximum(total.yy / total.n - (total.sy / total.n) ** 2, 1e-12)
+            n_test = sum(b.n for *_, b in folds)
+            for cand in self.candidates():
+                m = self._mask(*cand)
+                sse = np.zeros(self.N)
+                for (G, b), n, test in folds:
+                    sse += self._sse(test, self._solve(G, b, m, n))
+                scores[cand] = float(np.mean(sse / (n_test * var)))
+            best = self._choose(scores)
+        else:
+            best = (self.default_family if total.n else 'none', False, bool(self.C))
+        return self._fit(total, best, scores)
+
+    def _choose(self, scores: dict) -> tuple:
+        """
+        Pick from the CV scores: offsets only on a clear win, then the simplest close one.
+
+        Offsets must beat the best candidate without them by ``OFFSET_MARGIN``; among the
+        candidates of the chosen offset setting, the one with the fewest columns within
+        ``SIMPLER_MARGIN`` of the best is taken (three folds cannot resolve smaller
+        differences; a simpler model extrapolates better).
+        """
+        free = {c: v for c, v in scores.items() if not c[1]}
+        off = {c: v for c, v in scores.items() if c[1]}
+        pool = free
+        if off and min(off.values()) < (1.0 - OFFSET_MARGIN) * min(free.values()):
+            pool = off
+        top = min(pool.values())
+        close = [c for c, v in pool.items() if v <= (1.0 + SIMPLER_MARGIN) * top]
+        return min(close, key=lambda c: (int(self._mask(*c).sum()), pool[c]))
+
+    def fit(self, family: str, offsets: bool, conservative: bool) -> ParametricFit:
+        """Fit one given structure on the whole history."""
+        return self._fit(self._total(self._blocks, True), (family, offsets, conservative), {})
+
+    def _fit(self, total: _Stats, cand: tuple, scores: dict) -> ParametricFit:
+        G, b = self._global(total)
+        theta = self._solve(G, b, self._mask(*cand), total.n)
+        N = self.N
+        return ParametricFit(cand[0], bool(cand[1]), bool(cand[2]),
+                             np.maximum(theta[:N * F].reshape(N, F), 0.0),
+                             theta[N * F:N * F + N].copy(), theta[N * F + N:].copy(),
+                             self.basis, scores, total.n)

@@ -1,0 +1,136 @@
+"""
+The learner's parametric part (``prior='auto'``): long history, structure, correction.
+
+Every learned sample also goes into a :class:`~dgp_ros.dynamics.history.LongHistory` (sufficient
+statistics of the whole run). At each hyper-parameter refit the structure (friction family,
+offsets, the conservative correction of the rigid-body model) is re-selected by
+cross-validation on that history and fitted on all of it; then
+
+* the D-GP's prior mean is the fitted friction, frozen (passive: non-negative coefficients of
+  odd columns; the GP learns what it leaves, and the projection acts on both together);
+* the buffered samples' targets become ``residual - correction`` (the offsets and ``dV/dq``
+  are not damping and must not be learned as such);
+* a saved model carries the correction (``predict_residual``), and /diagnostics names the
+  structure.
+"""
+from __future__ import annotations
+
+from typing import List, Optional
+
+import numpy as np
+
+from dgp_ros.dynamics.conservative import correction_basis
+from dgp_ros.dynamics.history import LongHistory, ParametricFit
+
+__all__ = ['StructureMixin']
+
+
+class StructureMixin:
+    """
+    Mixin of :class:`~dgp_ros.online.learner.Learner` (module docstring).
+
+    Uses the learner's ``config``, ``_lock``, ``_N``, ``_inverse``, ``_buf``, ``health``.
+    """
+
+    _history: Optional[LongHistory] = None
+    _param: Optional[ParametricFit] = None
+    _names_hint: Optional[List[str]] = None
+
+    @property
+    def auto(self) -> bool:
+        """Tell whether the structure is chosen from the data (``prior='auto'``)."""
+        return self.config.prior == 'auto' and self.config.model != 'ard'
+
+    def set_joint_names(self, names) -> None:
+        """Take the stream's joint names (they may name a known robot: its URDF kinematics)."""
+        with self._lock:
+            if not self._names_hint and names:
+                self._names_hint = [str(n) for n in names]
+
+    def _structure_names(self) -> List[str]:
+        return list(self.config.joints) or list(getattr(self._inverse, 'joint_names', [])) \
+            or list(self._names_hint or [])
+
+    def _history_push(self, stamp: float, q, qd, qdd, r) -> Optional[np.ndarray]:
+        """Add a learned sample to the long history; its correction columns (N, C) or None."""
+        if not self.auto:
+            return None
+        if self._history is None:
+            names = self._structure_names()
+            basis = None
+            if self._inverse is not None and q is not None:
+                try:
+                    basis = correction_basis(self._inverse, names)
+                except Exception as exc:        # noqa: BLE001 - offsets and friction still
+                    self.health.last_refit_error = f'no conservative correction: {exc}'
+            default = 'friction' if self._inverse is not None else 'viscous'
+            self._history = LongHistory(self._N, basis, default, offsets=self._inverse is not None)
+            self.health.correction_basis = '' if basis is None else basis.source
+        try:
+            return self._history.push(stamp, q, qd, qdd, r)
+        except Exception as exc:                # noqa: BLE001 - e.g. a pose pinocchio rejects
+            self.health.last_refit_error = f'long history: {type(exc).__name__}: {exc}'
+            return None
+
+    def _reselect(self) -> None:
+        """Re-select and refit the parametric part; retarget the buffer (under the lock)."""
+        if not self.auto or self._history is None or self._history.samples == 0:
+            return
+        fit = self._history.select()
+        self._param = fit
+        self.health.structure = fit.label()
+        self.health.structure_scores = {', '.join(map(str, k)): round(v, 4)
+                                        for k, v in sorted(fit.scores.items(),
+                                                           key=lambda kv: kv[1])[:6]}
+        if self._buf is not None:
+            self._buf.retarget(fit.train_correction)
+
+    #: the structure is re-selected when the history has grown by this factor since the last
+    RESELECT_GROWTH = 1.25
+
+    def _reselect_due(self) -> bool:
+        h, p = self._history, self._param
+        return self.auto and h is not None and h.samples > 0 and (
+            p is None or h.samples >= self.RESELECT_GROWTH * max(p.samples, 1))
+
+    def _with_prior(self, hyper: Optional[dict]) -> Optional[dict]:
+        """Return warm-start hyper-parameters carrying the current frozen prior."""
+        if hyper is None or not self.auto or self._param is None:
+            return hyper
+        return dict(hyper, mean=self._param.friction_mean().fit(None, None).to_dict())
+
+    def _target(self, r: np.ndarray, yt: Optional[np.ndarray]) -> np.ndarray:
+        """Return the damping target of a residual r (N,) with correction columns yt."""
+        if self._param is None:
+            return r
+        return r - self._param.train_correction(None if yt is None else yt[None])[0]
+
+    def _model_kw(self, cfg=None) -> dict:
+        """Return the GP's constructor arguments: the configuration's, with the frozen prior."""
+        cfg = cfg or self.config
+        kw = cfg.model_kwargs()
+        if self.auto and self._param is not None:
+            kw['prior'] = self._param.friction_mean()
+            kw['bias'] = False
+        return kw
+
+    def _auto_prior(self):
+        """(mean, std) of the parametric part for answers before the first model, or None."""
+        if not self.auto or self._history is None or self._history.samples < 2:
+            return None
+        if self._param is None or self._param.samples * 2 < self._history.samples:
+            self._reselect()
+        mean = self._param.friction_mean().fit(None, None)
+        Q, T = self._buf.rows_unordered() if self._buf is not None and self._buf.size else \
+            (np.zeros((0, self._N)), np.zeros((0, self._N)))
+        std = np.sqrt(np.mean((T - mean(Q)) ** 2, axis=0)) if Q.shape[0] else np.zeros(self._N)
+        return mean, std
+
+    def _correction(self):
+        """
+        Return the correction that belongs to the buffer's current targets (None if none).
+
+        A model fitted on the buffer carries it (``correction_``, saved with it,
+        ``predict_residual``): targets and correction must come from the same parametric fit.
+        """
+        return self._param.correction() if self.auto and self._param is not None else None
