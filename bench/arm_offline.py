@@ -88,6 +88,8 @@ def main(argv=None) -> int:
     from dgp_ros.gp import make_model
     from dgp_ros.online.config import PARAMS
     prior, bias = PARAMS['prior'].default, PARAMS['bias'].default
+    if prior == 'auto':       # the node chooses per data; this offline table keeps a fixed one
+        prior, bias = 'friction+stribeck', True
     n, duration, k_pass = (150, 8.0, 10_000) if a.quick else (500, 20.0, 100_000)
     C.log(f'{NAME}: simulating the Panda ({duration:g} s) and its residual stream')
     Q, T, Qh, Fh, names = arm_data(duration, n)

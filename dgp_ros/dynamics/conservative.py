@@ -157,7 +157,8 @@ def correction_basis(inverse, names: Sequence[str]):
         return None
     from .inverse import UrdfInverseDynamics
     if isinstance(inverse, UrdfInverseDynamics):
-        return RegressorBasis(inverse, 'regressor of the URDF of the rigid-body model')
+        return RegressorBasis(inverse, 'regressor of the URDF of the rigid-body model',
+                              getattr(inverse, 'urdf_text', ''))
     try:
         path = _example_robot_for(names)
         if path is not None:

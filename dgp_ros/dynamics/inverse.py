@@ -109,6 +109,10 @@ class UrdfInverseDynamics:
         pin = _import_pinocchio()
         self._pin = pin
         full = self._build(pin, urdf, urdf_file)
+        self.urdf_text = urdf or ''
+        if not self.urdf_text and urdf_file:
+            with open(urdf_file, encoding='utf-8') as f:
+                self.urdf_text = f.read()      # a saved correction rebuilds from it
         movable = [full.names[j] for j in range(1, full.njoints) if full.joints[j].nv > 0]
         joints = list(joints) or movable
         if not joints:
