@@ -28,7 +28,7 @@ MODEL_SUFFIX = '.npz'
 PARAMS = {p.name: p for p in (
     ParamSpec('model', 'str', 'full', 'damping model: Full-D-GP, Diag-D-GP or the ARD-GP baseline',
               choices=KINDS),
-    ParamSpec('passivity', 'str', 'projected', describe_modes(), choices=PASSIVITY_MODES),
+    ParamSpec('passivity', 'str', 'certified', describe_modes(), choices=PASSIVITY_MODES),
     ParamSpec('prior', 'str', 'auto', 'prior mean of the damping: auto (the structure is chosen '
               'from the data by cross-validation: friction family, offsets, the conservative '
               'correction of the rigid-body model; fitted on the whole history), or fixed: '

@@ -284,6 +284,10 @@ class LearnerReport:
                 'margin': float(cert.margin) if cert is not None else float('nan'),
                 'method': str(cert.method) if cert is not None else '',
                 'domain': str(cert.domain) if cert is not None else '',
+                # which guarantee holds now (gp.policy.GUARANTEES); before the first fit the
+                # answer is the prior mean diag(m_d) qd with m_d >= 0: PSD by construction
+                'guarantee': (str(cert.guarantee) if cert is not None else
+                              'none' if self.config.passivity == 'none' else 'psd'),
                 'buffer_fill': 0 if self._buf is None else self._buf.size,
                 'refit_running': self.refit_running(),
                 'load_error': self.load_error, 'hyper_samples': self._opt_n,

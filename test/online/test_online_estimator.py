@@ -75,6 +75,22 @@ def test_config_ard_cannot_be_certified():
     EstimatorConfig(model='ard', passivity='projected').validate()
 
 
+def test_node_default_is_certified_and_the_diagnostics_name_the_guarantee():
+    assert EstimatorConfig().passivity == 'certified'
+    seen = {}
+    for passivity in ('certified', 'projected', 'none'):
+        est = OnlineEstimator(cfg(passivity=passivity))
+        before = est.diagnostics()['guarantee']       # the prior mean: PSD by construction
+        feed(est, 20)
+        assert est.trained
+        seen[passivity] = (before, est.diagnostics()['guarantee'])
+    # N = 3: a bound or a branch-and-bound proof of D itself; projected: each answer only
+    assert seen['certified'][0] == 'psd' and seen['certified'][1] in ('psd', 'passive-on-domain')
+    assert seen['projected'] == ('psd', 'pointwise')
+    # none enforces nothing; once fitted it reports what the a-posteriori bound happens to prove
+    assert seen['none'][0] == 'none' and seen['none'][1] in ('none', 'psd')
+
+
 def test_config_from_dict_unknown_key():
     with pytest.raises(ValueError, match='bogus'):
         EstimatorConfig.from_dict({'bogus': 1})
