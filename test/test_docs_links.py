@@ -3,7 +3,7 @@ The repository documents itself: no pointer to a design file outside it, no dead
 
 * no file tracked by git names the external design file (the repository's design lives in
   docs/ARCHITECTURE.md and docs/CONTRACTS.md);
-* README.md names nothing under ``../shared``;
+* README.md names nothing under ``../shared`` and no ``DESIGN.md``;
 * every relative markdown link (and image) in README.md and docs/*.md resolves to an existing
   path inside the repository.
 
@@ -89,6 +89,7 @@ def test_no_tracked_file_names_the_external_design():
 def test_readme_names_nothing_outside_the_repository():
     text = (ROOT / 'README.md').read_text(encoding='utf-8')
     assert '../shared' not in text
+    assert 'DESIGN.md' not in text, 'README.md names a design file: link docs/ARCHITECTURE.md'
 
 
 @pytest.mark.parametrize('md', _docs(), ids=lambda p: str(p.relative_to(ROOT)))
