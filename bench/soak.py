@@ -20,7 +20,7 @@ Reports (JSON on stdout, also written to ``--json PATH``):
 
 Exit status: 0, or 1 if the invariant was violated or an exception escaped.
 
-``--quick`` runs ~10 s (CI: test/test_reliability_load.py). No numbers are asserted here;
+``--quick`` runs ~10 s (test/online/test_online_load.py). No numbers are asserted here;
 this is a measurement tool.
 """
 from __future__ import annotations
@@ -281,7 +281,7 @@ def run_node(args) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    p.add_argument('--quick', action='store_true', help='~10 s run (CI)')
+    p.add_argument('--quick', action='store_true', help='~10 s run (the test)')
     p.add_argument('--duration', type=float, default=None, help='seconds (default 60, quick 10)')
     p.add_argument('--rate', type=float, default=1000.0, help='input rate, Hz')
     p.add_argument('--buffer', type=int, default=1000)

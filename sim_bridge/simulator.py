@@ -7,8 +7,8 @@ lift > 0 in normal flight; the side force is positive to the right and opposes s
 vector in a right-handed frame.  ``SimState.force_wind`` is the physical force vector in wind
 axes (x along the relative wind, y right, z down): ``F_wind = [-drag, side, -lift]``, so that
 ``F_body = T_w2b(alpha, beta) F_wind`` equals ``forces/fb[xyz]-aero-lbs``.  The published
-resistive force is ``tau = -F_wind = [drag, -side, lift]`` (DESIGN), and in body coordinates
-``tau = -F_body`` with ``q = [u, v, w]`` the air-relative body velocity.
+resistive force is ``tau = -F_wind = [drag, -side, lift]`` (docs/CONTRACTS.md), and in body
+coordinates ``tau = -F_body`` with ``q = [u, v, w]`` the air-relative body velocity.
 """
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ Smoke test of ``bench/hostile.py --quick`` (the hardening issue's adversarial tr
 It runs into a tmp dir (in-process and live over DDS, in a domain of its own), writes its section
 of RELIABILITY.md (not BENCHMARKS.md), prints nothing on stdout, and the invariants hold: no crash,
 no non-finite or non-passive output, learning not frozen, no file touched but the model, nothing
-imported from a bag.
+imported from a bag. Marked ``slow`` (a benchmark run): ``bash scripts/run_tests.sh -m slow``.
 """
 import os
 import re
@@ -17,7 +17,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BENCH = os.path.join(REPO, 'bench')
 sys.path.insert(0, BENCH)
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
 @pytest.fixture(scope='module')

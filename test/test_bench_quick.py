@@ -3,13 +3,16 @@ Smoke test of the benchmark scripts: every ``bench/*.py --quick`` runs into a tm
 
 Checks exit status, that the script's section(s) of BENCHMARKS.md and its plots were written, and
 that the numbers are sane (finite NMSE, 0 negative-power points for the guaranteed modes). Speed
-targets are benchmark figures, never asserted here.
+targets are benchmark figures, never asserted here. The runs are marked ``slow`` (several minutes
+together): ``bash scripts/run_tests.sh -m slow`` runs them.
 """
 import math
 import os
 import re
 import subprocess
 import sys
+
+import pytest
 
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -62,6 +65,7 @@ def test_common_write_section_replaces_only_its_block(tmp_path):
     assert text.index('second A') < text.index('only B')
 
 
+@pytest.mark.slow
 def test_synthetic_friction_quick(tmp_path):
     run('synthetic_friction.py', tmp_path)
     s = section(tmp_path, 'synthetic_friction')
@@ -81,6 +85,7 @@ def test_synthetic_friction_quick(tmp_path):
         assert rows[0][2] == '0' and rows[0][3] == '0', rows[0]
 
 
+@pytest.mark.slow
 def test_paper_experiments_quick(tmp_path):
     run('paper_experiments.py', tmp_path)
     a = section(tmp_path, 'paper_trajectory')
@@ -103,6 +108,7 @@ def test_paper_experiments_quick(tmp_path):
         assert (tmp_path / 'bench' / png).stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_speed_quick(tmp_path):
     run('speed.py', tmp_path)
     s = section(tmp_path, 'speed')
@@ -118,6 +124,7 @@ def test_speed_quick(tmp_path):
     assert rows[0][9] == '0'                                   # no passivity fallbacks
 
 
+@pytest.mark.slow
 def test_robot_arms_quick(tmp_path):
     run('robot_arms.py', tmp_path)
     s = section(tmp_path, 'robot_arms')
@@ -151,6 +158,7 @@ def test_robot_arms_quick(tmp_path):
     assert any('0 negative power' in r[0] and r[1] == 'met' for r in targets)
 
 
+@pytest.mark.slow
 def test_arm_offline_quick(tmp_path):
     """
     Smoke-test arm_offline.
@@ -178,6 +186,7 @@ def test_arm_offline_quick(tmp_path):
     assert all(r[11].startswith('True') for r in cert), cert
 
 
+@pytest.mark.slow
 def test_arm_live_quick(tmp_path):
     """
     Smoke-test arm_live: dgp-play -> estimator -> listener over DDS.

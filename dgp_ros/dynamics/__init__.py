@@ -1,5 +1,5 @@
 """
-Robot front end (DESIGN "Robot front end (real arms)").
+Robot front end (docs/CONTRACTS.md, "Robot front end"; docs/ARCHITECTURE.md, "Layers").
 
 From raw ``/joint_states`` to the friction residual the estimator learns. Pure numpy; no ROS import
 anywhere in this package, and pinocchio only when a URDF model is built.

@@ -2,8 +2,9 @@
 Rigid-body inverse dynamics ``tau_rb(q, qd, qdd)`` of an arm, in the estimator's joint order.
 
 The measured joint torque of a real arm is ``M(q) qdd + C(q, qd) qd + g(q)`` plus friction, sensor
-bias and noise; the estimator learns what is left after subtracting the first part (DESIGN "Robot
-front end"). Two sources of ``tau_rb``, chosen by the estimator parameter ``inverse_dynamics``:
+bias and noise; the estimator learns what is left after subtracting the first part
+(docs/CONTRACTS.md, "Robot front end"). Two sources of ``tau_rb``, chosen by the estimator
+parameter ``inverse_dynamics``:
 
 - ``"urdf"``: :class:`UrdfInverseDynamics`, pinocchio's RNEA on the kinematic/inertial model of a
   URDF (the ``robot_description`` string or a file). Only the model is built, never the geometry,

@@ -1,10 +1,10 @@
 """
 The friction residual ``effort - tau_rb(q, qd, qdd_hat)`` of a joint-state stream.
 
-This is what the estimator learns on a real arm (DESIGN "Robot front end"): the measured joint
-torque minus the rigid-body torque, i.e. friction plus sensor bias plus noise. ``qdd_hat`` comes
-from :class:`~dgp_ros.dynamics.filter.AccelFilter`, centred on the sample, so the residual of a
-sample is delayed by the filter's half window but not smeared over time.
+This is what the estimator learns on a real arm (docs/CONTRACTS.md, "Robot front end"): the
+measured joint torque minus the rigid-body torque, i.e. friction plus sensor bias plus noise.
+``qdd_hat`` comes from :class:`~dgp_ros.dynamics.filter.AccelFilter`, centred on the sample, so
+the residual of a sample is delayed by the filter's half window but not smeared over time.
 """
 from __future__ import annotations
 

@@ -42,15 +42,18 @@ import math
 from typing import Optional
 
 import numpy as np
-from scipy.linalg import LinAlgError
+from scipy.linalg import cholesky, LinAlgError
 from scipy.linalg.blas import drot
 import scipy.linalg.cython_lapack as _cython_lapack
 from scipy.linalg.lapack import dpotrf, dtrtrs
 
-__all__ = ['WindowCholesky', 'FrozenFactor', 'cholesky_in_place']
+__all__ = ['WindowCholesky', 'FrozenFactor', 'cholesky_in_place', 'chol_jitter',
+           'JITTER_STEPS']
 
 _F8 = np.dtype(np.float64).itemsize
 _PANEL = 64         # columns of N per dlasr call (rows above the panel are skipped)
+#: jitter tried in turn, relative to mean(diag K): a bounded escalation
+JITTER_STEPS = (0.0, 1e-10, 1e-8, 1e-6, 1e-4)
 
 
 def _lapack(name: str, nargs: int):
@@ -97,6 +100,24 @@ def cholesky_in_place(A: np.ndarray, n: Optional[int] = None) -> int:
     _dpotrf(_CH['L'], ctypes.byref(nn), _VP(A.ctypes.data), ctypes.byref(lda),
             ctypes.byref(info))
     return int(info.value)
+
+
+def chol_jitter(K: np.ndarray):
+    """
+    Return the lower Cholesky factor of K (n, n) with bounded jitter escalation.
+
+    Returns (L (n, n), jitter added to the diagonal); LinAlgError beyond ``JITTER_STEPS``.
+    """
+    base = float(np.mean(np.diag(K))) or 1.0
+    for rel in JITTER_STEPS:
+        j = rel * base
+        try:
+            L = cholesky(K + j * np.eye(K.shape[0]) if j else K, lower=True, check_finite=False)
+            return L, j
+        except LinAlgError:
+            continue
+    raise LinAlgError(f'kernel matrix not positive definite even with jitter '
+                      f'{JITTER_STEPS[-1]:g} x mean diagonal')
 
 
 class WindowCholesky:

@@ -1,4 +1,8 @@
-"""Input checks shared by the models: every failure is a ValueError that names the problem."""
+"""
+Input checks and batching shared by the models.
+
+Every failed check is a ValueError that names the problem.
+"""
 from __future__ import annotations
 
 from typing import Optional
@@ -35,3 +39,34 @@ def as_pair(Qd, Tau, N: Optional[int] = None):
     if Qd.shape[0] != Tau.shape[0]:
         raise ValueError(f'Qd has {Qd.shape[0]} samples but Tau has {Tau.shape[0]}')
     return Qd, Tau
+
+
+def as_box(box, N: int, name: str):
+    """Return a pair ``(lo, hi)`` of (N,) float arrays with ``lo < hi``, finite, from ``box``."""
+    try:
+        lo, hi = (np.asarray(v, dtype=float).ravel() for v in box)
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be a pair (lo, hi) of (N,) arrays') from None
+    if lo.shape != (N,) or hi.shape != (N,) or not (np.all(np.isfinite(lo)) and
+                                                    np.all(np.isfinite(hi))):
+        raise ValueError(f'{name}: lo and hi must be {N} finite numbers each '
+                         f'(one per velocity), got {lo.size} and {hi.size}')
+    if np.any(hi <= lo):
+        raise ValueError(f'{name}: need lo < hi in every dimension, got '
+                         f'lo={lo.tolist()}, hi={hi.tolist()}')
+    return lo, hi
+
+
+def in_chunks(Q: np.ndarray, n: int, fn, elements: int) -> tuple:
+    """
+    Apply ``fn`` to row chunks of Q (k, N) and concatenate its results.
+
+    ``fn(Qc)`` returns a tuple of arrays (rows first) or Nones; a chunk has at most
+    ``elements // n`` rows (at least 256), which bounds its (rows, n) kernel temporaries.
+    """
+    rows = max(256, elements // max(n, 1))
+    if Q.shape[0] <= rows:
+        return fn(Q)
+    parts = [fn(Q[i:i + rows]) for i in range(0, Q.shape[0], rows)]
+    return tuple(None if parts[0][j] is None else np.concatenate([pt[j] for pt in parts])
+                 for j in range(len(parts[0])))

@@ -17,9 +17,10 @@ from scipy.linalg.blas import dsymm, dsyr
 from scipy.linalg.lapack import dpotrf, dpotri, dpotrs
 from scipy.optimize import minimize
 
+from ._chol import JITTER_STEPS
 from .kernels import _EXP_FLOOR, Structure
 from .means import make_mean, mean_from_dict, ViscousMean
-from .posterior import _JITTER_STEPS, Hyper
+from .posterior import Hyper
 
 __all__ = ['LmlObjective', 'initial_hyper', 'learn_hyper', 'MIN_NOISE_VAR',
            'hyper_from_params']
@@ -117,7 +118,7 @@ class LmlObjective:
 
     ``theta = [log sf2 (Em), log l (Em * N element-major, or N when tied), log s_eps^2]``;
     ``__call__(theta) -> (nll, grad)``, ``(1e25, zeros)`` when K is not positive definite even
-    with the jitter of ``posterior.chol_jitter``.
+    with the jitter of ``_chol.chol_jitter``.
 
     Per element one GEMM gives the exponent (centred inputs, clipped to [-600, log sf2]: no
     denormals), exponentiated in place and multiplied by the shared feature product; K is
@@ -194,7 +195,7 @@ class LmlObjective:
         K = self.K
         build_K(K)
         base = None
-        for rel in _JITTER_STEPS:
+        for rel in JITTER_STEPS:
             if base is None:
                 d = K.diagonal()
                 base = float(np.mean(d)) + sn2

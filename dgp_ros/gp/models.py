@@ -18,7 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-from ._validation import as_matrix, as_pair
+from ._validation import as_box, as_matrix, as_pair, in_chunks
 from .hyper import apply_fixed_noise, hyper_from_params, initial_hyper, learn_hyper, scales
 from .kernels import KINDS, Structure
 from .means import make_mean, PriorMean, PRIORS
@@ -33,16 +33,6 @@ __all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class', 'load_mod
 #: query rows per chunk times training samples: bounds the (rows, n) kernel temporaries of a
 #: large batch (10^6 queries at n = 500 took 24 GB at once) to about 64 MB each
 CHUNK_ELEMENTS = 8_000_000
-
-
-def _in_chunks(Q: np.ndarray, n: int, fn) -> tuple:
-    """``fn(Q)`` (a tuple of arrays or Nones, rows first) over row chunks of Q, concatenated."""
-    rows = max(256, CHUNK_ELEMENTS // max(n, 1))
-    if Q.shape[0] <= rows:
-        return fn(Q)
-    parts = [fn(Q[i:i + rows]) for i in range(0, Q.shape[0], rows)]
-    return tuple(None if parts[0][j] is None else np.concatenate([pt[j] for pt in parts])
-                 for j in range(len(parts[0])))
 
 
 class _DGP:
@@ -154,20 +144,7 @@ class _DGP:
             if pw.shape != (N,) or np.any(~np.isfinite(pw)) or np.any(pw <= 0):
                 raise ValueError(f'projection_weights must be {N} positive finite numbers')
         od = self.operating_domain
-        if od is not None:
-            try:
-                lo, hi = (np.asarray(v, dtype=float).ravel() for v in od)
-            except (TypeError, ValueError):
-                raise ValueError('operating_domain must be a pair (lo, hi) of (N,) arrays') \
-                    from None
-            if lo.shape != (N,) or hi.shape != (N,) or not (np.all(np.isfinite(lo)) and
-                                                            np.all(np.isfinite(hi))):
-                raise ValueError(f'operating_domain: lo and hi must be {N} finite numbers each '
-                                 f'(one per velocity), got {lo.size} and {hi.size}')
-            if np.any(hi <= lo):
-                raise ValueError(f'operating_domain: need lo < hi in every dimension, got '
-                                 f'lo={lo.tolist()}, hi={hi.tolist()}')
-            od = (lo, hi)
+        od = None if od is None else as_box(od, N, 'operating_domain')
         return PolicyOptions(float(self.domain_margin), float(self.blend_width),
                              int(self.max_boxes), od, pw)
 
@@ -401,7 +378,7 @@ class _DGP:
                 tau, var = p.predict(Qc, w, want_var, Kel)
             tau, D = pol.finalize(p, Qc, tau, D)
             return tau, var, D if want_D else None
-        return _in_chunks(Q, p.n, part)
+        return in_chunks(Q, p.n, part, CHUNK_ELEMENTS)
 
     def snapshot(self, variance: bool = True) -> '_DGP':
         """

@@ -6,7 +6,7 @@ inputs are standardized ``x = qd / s_x`` and outputs ``y = (tau - m_tau(qd) - b)
 ``s_x`` the RMS velocity and ``s_y`` the RMS of the residual after the prior mean; so rad vs m/s
 or 1e5 N scales do not matter.
 
-Structure (DESIGN "Method"): output ``m`` is an independent GP with the kernel
+Structure (docs/ARCHITECTURE.md, "The model"): output ``m`` is an independent GP with the kernel
 ``k^(m)(x, x') = sum_{e in row m} phi_e(x) phi_e(x') k_e(x, x')`` (``kernels.Structure``). The
 stacked ``nN x nN`` system is block diagonal, so fitting is ``N`` independent ``n x n`` Cholesky
 factorizations and prediction ``N`` independent triangular solves.
@@ -23,17 +23,17 @@ import math
 from typing import Optional
 
 import numpy as np
-from scipy.linalg import cholesky, LinAlgError
+from scipy.linalg import LinAlgError
 from scipy.linalg.blas import dsymv
 
-from ._chol import cholesky_in_place, FrozenFactor, WindowCholesky
+from ._chol import (chol_jitter, cholesky_in_place, FrozenFactor, JITTER_STEPS,
+                    WindowCholesky)
 from .kernels import lower_se_sum, se_ard, Structure
 from .means import PriorMean
 from .verify import CorrectionTerms
 
 __all__ = ['Hyper', 'Posterior', 'chol_jitter']
 
-_JITTER_STEPS = (0.0, 1e-10, 1e-8, 1e-6, 1e-4)   # relative to mean(diag K); bounded escalation
 _LOG2PI = math.log(2.0 * math.pi)
 # element kernels are kept while an output is factorized up to this n, so that the RKHS norms of
 # the certificate cost one matrix-vector product each instead of a rebuild
@@ -100,20 +100,6 @@ class Hyper:
                     raise ValueError(f'hyperparams[{k!r}] has shape {hp[k].shape}, the '
                                      f'{structure.kind} model with N = {N} needs {shape}')
         return cls(**hp)
-
-
-def chol_jitter(K: np.ndarray):
-    """Lower Cholesky factor with bounded jitter escalation. Returns (L, jitter_added)."""
-    base = float(np.mean(np.diag(K))) or 1.0
-    for rel in _JITTER_STEPS:
-        j = rel * base
-        try:
-            L = cholesky(K + j * np.eye(K.shape[0]) if j else K, lower=True, check_finite=False)
-            return L, j
-        except LinAlgError:
-            continue
-    raise LinAlgError(f'kernel matrix not positive definite even with jitter '
-                      f'{_JITTER_STEPS[-1]:g} x mean diagonal')
 
 
 class Posterior:
@@ -196,7 +182,7 @@ class Posterior:
             if not (math.isfinite(base) and np.all(np.isfinite(d))):
                 raise ValueError(f'kernel matrix of output {m} is not finite: hyper-parameters '
                                  f'or inputs out of range')
-            for rel in _JITTER_STEPS:
+            for rel in JITTER_STEPS:
                 j = rel * base
                 if j:                                  # dpotrf overwrote the triangle: rebuild
                     lower_se_sum(X, *args, A, noise=sn2 + j)
@@ -204,7 +190,7 @@ class Posterior:
                     break
             else:
                 raise LinAlgError(f'kernel matrix not positive definite even with jitter '
-                                  f'{_JITTER_STEPS[-1]:g} x mean diagonal')
+                                  f'{JITTER_STEPS[-1]:g} x mean diagonal')
             wc = WindowCholesky.adopt(A, self.R[:, m], n=n, limit=self._limit())
             if not np.all(np.isfinite(wc.diag())):
                 raise ValueError(f'kernel matrix of output {m} is not finite: hyper-parameters '

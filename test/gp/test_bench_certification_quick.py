@@ -2,17 +2,21 @@
 Smoke test of bench/certification.py --quick (into a tmp dir; speed is never asserted here).
 
 It runs with the real Panda log where the shared folder has it and says so where it does not;
-either way the A320 part runs, and every model it reports has 0 violations.
+either way the A320 part runs, and every model it reports has 0 violations. Marked ``slow`` (a
+benchmark run): ``bash scripts/run_tests.sh -m slow``.
 """
 import os
 import re
 import subprocess
 import sys
 
+import pytest
+
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 BENCH = os.path.join(REPO, 'bench')
 
 
+@pytest.mark.slow
 def test_certification_quick(tmp_path):
     r = subprocess.run([sys.executable, os.path.join(BENCH, 'certification.py'), '--quick',
                         '--out', str(tmp_path)], cwd=REPO, capture_output=True, text=True,

@@ -1,0 +1,301 @@
+"""
+What ``dgp-replay`` writes: the estimates as CSV, the summary, the plots (no rclpy, no DDS).
+
+The replay itself (bag in, estimates out) is :mod:`dgp_ros.replay`; this module turns its
+estimates (a list of :class:`dgp_ros.online.Estimate`) and the estimator into files.
+
+The files ``dgp-replay --out DIR`` writes to ``DIR``:
+
+- ``estimates.csv``: ``t`` (header stamp, s), then per joint ``q_<j>`` (velocity), ``tau_<j>``
+  (measured effort), ``tau_hat_<j>``, ``stddev_<j>``; then ``P`` (measured power ``qd.tau``),
+  ``P_hat`` (``qd.tau_hat``), ``source`` (model/prior/fallback) and ``added`` (0/1). Rejected
+  messages have no row (they are counted in the summary).
+- ``summary.json``: NMSE per output (all estimates, and model-only estimates), RMSE (and RMSE /
+  mass with ``--mass``), median absolute error, count of huge/non-finite estimates,
+  negative-power fractions (estimate and measurement), refits, timings,
+  rejected-message counts by reason, certificate at the end, the configuration used.
+- ``estimate_vs_measurement.png``, ``error.png`` (divided by the mass when given: m/s^2),
+  ``power_hist.png`` (matplotlib, Agg backend).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+import time
+
+import numpy as np
+
+__all__ = ['arrays_of', 'CsvWriter', 'CSV_FIXED', 'make_plots', 'summarize', 'write_csv',
+           'write_summary']
+
+
+def _nmse(err, y):
+    """
+    Compute the NMSE and MSE.
+
+    (NMSE, MSE); inf if an estimate is non-finite or overflows (JSON writes it as null,
+    ``huge_or_nonfinite`` in the summary says why).
+    """
+    var = float(np.var(y)) if y.size else float('nan')
+    with np.errstate(over='ignore', invalid='ignore'):
+        mse = float(np.mean(np.square(err))) if err.size else float('nan')
+    if math.isnan(mse) and err.size:
+        mse = float('inf')
+    return mse / var if var > 0 else float('nan'), mse
+
+
+def _clean(x):
+    """JSON-safe (NaN/inf -> None)."""
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def arrays_of(estimates):
+    """Stack estimates into arrays: t (k,), qd/tau/tau_hat/stddev (k, N), P/P_hat (k,)."""
+    if not estimates:
+        return None
+    return {
+        't': np.array([e.stamp_s for e in estimates]),
+        'qd': np.array([e.qd for e in estimates]),
+        'tau': np.array([e.tau for e in estimates]),
+        'tau_hat': np.array([e.tau_hat for e in estimates]),
+        'stddev': np.array([e.stddev for e in estimates]),
+        'P': np.array([e.measured_power for e in estimates]),
+        'P_hat': np.array([e.power for e in estimates]),
+        'source': np.array([e.source for e in estimates]),
+        'added': np.array([bool(e.added) for e in estimates]),
+        'proc': np.array([e.processing_time_s for e in estimates]),
+    }
+
+
+CSV_FIXED = ('P', 'P_hat', 'source', 'added')
+
+
+class CsvWriter:
+    """
+    Write ``estimates.csv`` as the estimates come.
+
+    ``estimates.csv`` written row by row as estimates come (flushed about once a second), so
+    that an interrupted or killed replay leaves what it had.
+    """
+
+    def __init__(self, path):
+        self.path = path
+        self._f = None
+        self._w = None
+        self._flushed = time.monotonic()
+
+    def __call__(self, e) -> None:
+        if self._w is None:
+            names = e.names or [f'q{i}' for i in range(e.qd.size)]
+            self._f = open(self.path, 'w', newline='')
+            self._w = csv.writer(self._f)
+            self._w.writerow(['t'] + [f'{k}_{j}' for k in ('q', 'tau', 'tau_hat', 'stddev')
+                                      for j in names] + list(CSV_FIXED))
+        r = repr
+        self._w.writerow([r(float(e.stamp_s))] + [r(float(x)) for x in e.qd]
+                         + [r(float(x)) for x in e.tau] + [r(float(x)) for x in e.tau_hat]
+                         + [r(float(x)) for x in e.stddev]
+                         + [r(float(e.measured_power)), r(float(e.power)), e.source,
+                            int(bool(e.added))])
+        now = time.monotonic()
+        if now - self._flushed >= 1.0:
+            self._flushed = now
+            self._f.flush()
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+        elif not os.path.exists(self.path):
+            Path(self.path).write_text('')
+
+
+def write_csv(path, estimates, names=None):
+    """Write ``estimates`` (a list of Estimate) to ``path`` (see the module docstring)."""
+    w = CsvWriter(path)
+    for e in estimates:
+        w(e)
+    w.close()
+
+
+def _final_certificate(est) -> dict:
+    """
+    Return the certificate of the final model.
+
+    It is re-proven first if updates left it stale (offline, so the branch-and-bound may take its
+    time here).
+    """
+    model = est.model
+    if model is None:
+        return {'certified': False, 'margin': None, 'method': '', 'domain': None, 'stale': False}
+    cert = model.certificate()
+    if cert.stale:
+        cert = model.recertify()
+    return {'certified': bool(cert.certified), 'margin': float(cert.margin), 'method': cert.method,
+            'domain': None if cert.domain is None else [np.asarray(v).tolist()
+                                                        for v in cert.domain],
+            'stale': bool(cert.stale), 'correction_scale': float(cert.correction_scale)}
+
+
+def summarize(bag, estimates, est, info, names, mass=None) -> dict:
+    """
+    Return the content of ``summary.json`` (module docstring) as a JSON-safe dict.
+
+    ``estimates``: the replay's Estimates (N joints each), ``est``: its OnlineEstimator after the
+    stream, ``info``: what ``replay.replay`` returned about the stream, ``names``: the N joint
+    names, ``mass``: kg or None (adds the RMSE per mass, m/s^2).
+    """
+    diag = est.diagnostics()
+    A = arrays_of(estimates)
+    per = {}
+    if A is not None:
+        err = A['tau_hat'] - A['tau']
+        model = A['source'] == 'model'
+        for i, j in enumerate(names):
+            nmse, mse = _nmse(err[:, i], A['tau'][:, i])
+            nmse_m, _ = _nmse(err[model, i], A['tau'][model, i])
+            th = A['tau_hat'][:, i]
+            scale = 1e6 * max(float(np.max(np.abs(A['tau'][:, i]))), 1.0)
+            d = {'nmse': nmse, 'nmse_model_only': nmse_m, 'rmse': math.sqrt(mse),
+                 'median_abs_error': float(np.median(np.abs(err[:, i]))),
+                 # estimates that are non-finite or > 1e6 x the largest measurement
+                 'huge_or_nonfinite': int(np.sum(~np.isfinite(th) | (np.abs(th) > scale))),
+                 'mean_stddev': float(np.mean(A['stddev'][:, i]))}
+            if mass:
+                d['rmse_per_mass'] = math.sqrt(mse) / mass
+            per[j] = d
+    k = 0 if A is None else len(A['t'])
+    durs = est.refit_durations()
+    s = {
+        'bag': str(bag), 'topic': info['topic'], 'joints': list(names),
+        'messages': info['messages'], 'estimates': k,
+        'duration_s': float(A['t'][-1] - A['t'][0]) if k else 0.0,
+        'nmse': {j: per[j]['nmse'] for j in per},
+        'nmse_mean': float(np.mean([per[j]['nmse'] for j in per])) if per else float('nan'),
+        'outputs': per,
+        'negative_power_fraction': float(np.mean(A['P_hat'] < 0)) if k else float('nan'),
+        'min_power_estimate': float(np.min(A['P_hat'])) if k else float('nan'),
+        'measured_negative_power_fraction': float(np.mean(A['P'] < 0)) if k else float('nan'),
+        'sources': {src: int(np.sum(A['source'] == src)) for src in ('model', 'prior', 'fallback')}
+        if k else {},
+        'samples_added': diag['samples_added'], 'samples_skipped': diag['samples_skipped'],
+        'samples_rate_limited': diag['samples_rate_limited'],
+        'refits': {'started': diag['refits_started'], 'ok': diag['refits_ok'],
+                   'failed': diag['refits_failed'], 'last_error': diag['last_refit_error']},
+        'rejected': dict(diag['rejected'], undecodable=info['undecodable']),
+        'rejected_total': diag['rejected_total'] + info['undecodable'],
+        'time_jumps_back': diag['time_jumps_back'],
+        'passivity_fallbacks': diag['passivity_fallbacks'],
+        'certificate': _final_certificate(est),
+        'status': {'level': diag['level'], 'message': diag['message']},
+        'learned_negative_power_fraction': diag['negative_power_fraction'],
+        'interrupted': info.get('interrupted', False),
+        'timings': {
+            'wall_time_s': info['wall_time_s'],
+            'wall_per_data_second': (info['wall_time_s'] / float(A['t'][-1] - A['t'][0])
+                                     if k > 1 and A['t'][-1] > A['t'][0] else float('nan')),
+            'process_total_s': info['process_time_s'],
+            'process_per_msg_median_s': float(np.median(A['proc'])) if k else float('nan'),
+            'process_per_msg_p99_s': float(np.percentile(A['proc'], 99)) if k else float('nan'),
+            'process_per_msg_max_s': float(np.max(A['proc'])) if k else float('nan'),
+            'refit_count': len(durs), 'refit_total_s': float(np.sum(durs)) if durs else 0.0,
+            'refit_mean_s': float(np.mean(durs)) if durs else float('nan'),
+            'refit_max_s': float(np.max(durs)) if durs else float('nan'),
+        },
+        'mass_kg': mass,
+        'config': est.config.to_dict(),
+    }
+    return _clean(s)
+
+
+def make_plots(out: Path, estimates, names, mass=None) -> list:
+    """
+    Write the three plots (module docstring) into ``out``; return their paths ([] if no estimate).
+
+    ``names``: the N joint names; ``mass`` (kg): the error plot is divided by it when given.
+    """
+    import matplotlib
+    matplotlib.use('Agg', force=True)
+    import matplotlib.pyplot as plt
+
+    A = arrays_of(estimates)
+    if A is None:
+        return []
+    t = A['t'] - A['t'][0]
+    N = len(names)
+    files = []
+
+    fig, axes = plt.subplots(N, 1, figsize=(10, 2.6 * N), sharex=True, squeeze=False)
+    for i, j in enumerate(names):
+        ax = axes[i, 0]
+        ax.plot(t, A['tau'][:, i], lw=0.8, color='0.4', label='measured')
+        ax.plot(t, A['tau_hat'][:, i], lw=1.0, color='C0', label='estimate')
+        sd = A['stddev'][:, i]
+        ok = np.isfinite(sd)
+        lo, hi = (A['tau_hat'][:, i] - 2 * sd)[ok], (A['tau_hat'][:, i] + 2 * sd)[ok]
+        ax.fill_between(t[ok], lo, hi, color='C0', alpha=0.2, lw=0, label='±2σ')
+        ax.set_ylabel(f'{j}')
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc='upper right', fontsize=8)
+    axes[0, 0].set_title('damping force: estimate vs measurement')
+    axes[-1, 0].set_xlabel('time [s]')
+    fig.tight_layout()
+    files.append(out / 'estimate_vs_measurement.png')
+    fig.savefig(files[-1], dpi=110)
+    plt.close(fig)
+
+    err = A['tau_hat'] - A['tau']
+    unit = 'N'
+    if mass:
+        err = err / mass
+        unit = 'N/kg = m/s²'
+    fig, axes = plt.subplots(N, 1, figsize=(10, 2.2 * N), sharex=True, squeeze=False)
+    for i, j in enumerate(names):
+        ax = axes[i, 0]
+        ax.plot(t, err[:, i], lw=0.8, color='C3')
+        ax.axhline(0, color='k', lw=0.5)
+        ax.set_ylabel(f'{j} [{unit}]' if mass else j)
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_title('estimation error' + (f' / mass ({mass:g} kg)' if mass else ''))
+    axes[-1, 0].set_xlabel('time [s]')
+    fig.tight_layout()
+    files.append(out / 'error.png')
+    fig.savefig(files[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    both = np.concatenate([A['P_hat'], A['P']])
+    both = both[np.isfinite(both)]
+    bins = np.linspace(both.min(), both.max(), 60) if both.size and both.min() < both.max() else 30
+    ax.hist(A['P'], bins=bins, alpha=0.5, color='0.4', label='measured qd·tau')
+    ax.hist(A['P_hat'], bins=bins, alpha=0.6, color='C0', label='estimate qd·tau_hat')
+    ax.axvline(0, color='k', lw=0.8)
+    ax.set_xlabel('dissipated power')
+    ax.set_ylabel('count')
+    neg = float(np.mean(A['P_hat'] < 0))
+    ax.set_title(f'dissipated power (estimate < 0: {100 * neg:.2f} %)')
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    files.append(out / 'power_hist.png')
+    fig.savefig(files[-1], dpi=110)
+    plt.close(fig)
+    return files
+
+
+def write_summary(out: Path, summary: dict) -> None:
+    """Write ``summary`` to ``out/summary.json`` atomically (a temporary file, then a rename)."""
+    tmp = out / 'summary.json.tmp'
+    tmp.write_text(json.dumps(summary, indent=2, sort_keys=False) + '\n')
+    os.replace(tmp, out / 'summary.json')
