@@ -32,6 +32,7 @@ from .answer import answer, Estimate
 from .config import EstimatorConfig
 from .health import Health
 from .learner import FRONT_END, Learner
+from .plan import PlanCache
 from .snapshot import Snapshot
 
 __all__ = ['OnlineEstimator', 'Estimate']
@@ -63,6 +64,7 @@ class OnlineEstimator:
         self._want_stddev = True
         self._want_damping = True
         self._want_residuals = True
+        self._plans = PlanCache()             # the lean pass of the snapshot answered from
         if self.config.refit_mode == 'process':
             from .process import LearnerProcess
             self._learner = LearnerProcess(self.config)
@@ -318,7 +320,7 @@ class OnlineEstimator:
     def _estimate(self, snap: Optional[Snapshot], Q: np.ndarray):
         """(tau_hat, std, D, source) for velocities Q (k, N) from ``snap``, through the gate."""
         return answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
-                      self.health, self._learner.note_error)
+                      self.health, self._learner.note_error, self._plans)
 
     def predict(self, Qs) -> np.ndarray:
         """Estimates (k, N) at velocities Qs with the rules of ``process`` (no learning)."""
@@ -391,6 +393,9 @@ class OnlineEstimator:
             d.update({k: v for k, v in learner.items()
                       if k not in ('warnings', 'version', 'refit_durations')})
             d.update(self.health.counters())
+            if self._plans.mismatches:
+                # the lean pass disagreed with the model (answers came from the model)
+                d['answer_plan_mismatches'] = self._plans.mismatches
             warnings = list(learner.get('warnings', []))
             if self._arrival_t0 is not None:
                 warnings.insert(0, 'message stamps do not advance (header.stamp constant or 0): '
