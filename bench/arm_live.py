@@ -88,6 +88,7 @@ def _extra(p):
     for flag in ('khz', 'hz500', 'hog', 'services', 'kill', 'learn-all', 'cpu-split'):
         p.add_argument('--' + flag, action='store_true')
     p.add_argument('--repeat', type=int, default=1, help='runs per scenario (rows each)')
+    p.add_argument('--keep', default='', help="keep every process's files in this directory")
 
 
 # ----------------------------------------------------------------------------- CPU accounting
@@ -365,7 +366,7 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
                 pr.kill()
         est_log.close()
     result['player'] = json.load(open(f('player.json')))
-    L = np.load(f('listener.npz'))
+    L = np.load(f('listener.npz'), allow_pickle=False)
     result['lis'] = {k: L[k] for k in ('meas', 'ans', 'effort')}
     result['diags'] = json.loads(str(L['diags']))
     result['probes'] = json.loads(str(L['probes']))
@@ -755,7 +756,9 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     runs = []
     held = None
-    with tempfile.TemporaryDirectory() as work:
+    with tempfile.TemporaryDirectory() as tmp:
+        work = a.keep or tmp
+        os.makedirs(work, exist_ok=True)
         scs = scenarios(a)
         if any(sc.tree == 'BEFORE' for sc in scs):
             before = _before_tree(a.before_rev, work)

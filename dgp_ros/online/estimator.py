@@ -83,6 +83,7 @@ class OnlineEstimator:
         self._advancing = 0
         self._arrival_t0: Optional[float] = None        # set: learning uses arrival time
         self._last_est: Optional[Estimate] = None
+        self._order = None                  # (a message's names, their configured order)
         self.health = Health()
 
     def set_outputs(self, stddev: bool = True, damping: bool = True,
@@ -295,11 +296,17 @@ class OnlineEstimator:
                 (p is not None and p.size != v.size):
             return 'length_mismatch'
         if self._names is not None and names:
-            pos = {n: i for i, n in enumerate(names)}
-            try:
-                idx = [pos[n] for n in self._names]
-            except KeyError:
-                return 'missing_joint'
+            key = tuple(names)
+            cached = self._order
+            if cached is not None and cached[0] == key:     # a driver sends the same names
+                idx = cached[1]
+            else:
+                pos = {n: i for i, n in enumerate(names)}
+                try:
+                    idx = np.array([pos[n] for n in self._names], dtype=np.intp)
+                except KeyError:
+                    return 'missing_joint'
+                self._order = (key, idx)
             v, e, names = v[idx], e[idx], list(self._names)
             p = None if p is None else p[idx]
         elif self._names is not None and not names and self.config.joints:
@@ -308,11 +315,11 @@ class OnlineEstimator:
             return 'too_many_joints'
         if self._N is not None and v.size != self._N:
             return 'dimension_mismatch'
-        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(e)) and
-                (p is None or np.all(np.isfinite(p)))):
+        if not (np.isfinite(v).all() and np.isfinite(e).all() and
+                (p is None or np.isfinite(p).all())):
             return 'non_finite'
-        if np.any(np.abs(v) > self.config.max_abs_velocity) or \
-                np.any(np.abs(e) > self.config.max_abs_effort):
+        if (np.abs(v) > self.config.max_abs_velocity).any() or \
+                (np.abs(e) > self.config.max_abs_effort).any():
             return 'out_of_range'
         return names, v, e, p
 
