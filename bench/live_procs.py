@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-The processes of bench/arm_live.py, one role each: ``player``, ``listener``, ``estimator``, ``hog``.
+The processes of bench/arm_live.py, one role each: player, listener, estimator, hog.
 
 * ``player``: a simulated Panda's raw /joint_states (7 joints and a finger joint, like a driver)
   published at absolute deadlines in phases ``RATE:SECONDS,...``; each phase samples the

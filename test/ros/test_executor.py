@@ -16,7 +16,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import Int32  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from dgp_ros.executor import WaitSetExecutor, set_batch_handler  # noqa: E402
+from dgp_ros.executor import set_batch_handler, WaitSetExecutor  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
