@@ -281,19 +281,21 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
     os.makedirs(d)
     env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_DOMAIN_ID=str(random.randint(150, 230)),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', OPENBLAS_NUM_THREADS='1',
-               PYTHONPATH=sc.tree or C.REPO)
+               PYTHONPATH=C.REPO)
     env.pop('ROS_LOCALHOST_ONLY', None)
+    env.pop('DGP_EXECUTOR', None)
+    # the estimator runs the scenario's code and executor; the other processes this tree's
+    est_env = dict(env, PYTHONPATH=sc.tree or C.REPO)
     if sc.executor:
-        env['DGP_EXECUTOR'] = sc.executor
-    else:
-        env.pop('DGP_EXECUTOR', None)
+        est_env['DGP_EXECUTOR'] = sc.executor
     py = sys.executable
     f = lambda n: os.path.join(d, n)  # noqa: E731
     procs = []
 
     def start(name, args, log):
-        pr = subprocess.Popen([py, PROCS] + args, env=env, stdout=log, stderr=subprocess.STDOUT,
-                              start_new_session=True, cwd=d)
+        pr = subprocess.Popen([py, PROCS] + args, env=est_env if name == 'estimator' else env,
+                              stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                              cwd=d)
         procs.append((name, pr))
         return pr
 
@@ -754,7 +756,7 @@ def main(argv=None) -> int:
     names = list(ARM_JOINTS['panda'])
     urdf = example_robot_urdf('panda')
     t0 = time.perf_counter()
-    runs = []
+    runs, failed = [], []
     held = None
     with tempfile.TemporaryDirectory() as tmp:
         work = a.keep or tmp
@@ -777,7 +779,12 @@ def main(argv=None) -> int:
         for sc in scs:
             for i in range(a.repeat):
                 C.log(f'arm_live: {sc.label} (run {i + 1} of {a.repeat})')
-                r = run_one(sc, a, work, urdf, names)
+                try:
+                    r = run_one(sc, a, work, urdf, names)
+                except Exception as exc:        # noqa: BLE001 - the section says so
+                    C.log(f'arm_live: {sc.name} failed: {exc}')
+                    failed.append(f'{sc.label}: {exc}')
+                    continue
                 r['sum'] = summarize(r, rng)
                 s = r['sum']
                 C.log(f'arm_live: {sc.name}: answered {100 * s["answered"]:.2f} %, latency '
@@ -789,7 +796,10 @@ def main(argv=None) -> int:
                 r.pop('lis', None)
                 runs.append(r)
     wall = time.perf_counter() - t0
-    C.write_section(a.out, SECTION, section(a, runs, held, wall, names))
+    text = section(a, runs, held, wall, names)
+    if failed:
+        text += '\nRuns that failed: ' + '; '.join(failed) + '\n'
+    C.write_section(a.out, SECTION, text)
     with open(os.path.join(C.plot_dir(a.out), 'arm_live_runs.json'), 'w') as f:
         json.dump([{k: v for k, v in r.items() if k not in ('diags',)} for r in runs], f,
                   default=lambda o: o.tolist() if hasattr(o, 'tolist') else str(o))
