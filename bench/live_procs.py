@@ -242,6 +242,34 @@ def estimator(a, ros_args) -> int:
     for name in ('_on_state', '_on_states'):
         if hasattr(E.EstimatorNode, name):
             setattr(E.EstimatorNode, name, timed(getattr(E.EstimatorNode, name)))
+    # where the long stalls come from: the slowest callbacks (wall) and garbage collections
+    slow, gcs = [], []
+
+    def walled(name, fn):
+        def wrapper(*args, **kw):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kw)
+            finally:
+                dt = time.perf_counter() - t0
+                if dt > 0.02:
+                    slow.append((name, round(dt * 1e3, 1), round(time.time(), 3)))
+        return wrapper
+    for name in ('_on_state', '_on_states', '_publish_diagnostics', '_srv_refit', '_srv_reset',
+                 '_srv_save'):
+        if hasattr(E.EstimatorNode, name):
+            setattr(E.EstimatorNode, name, walled(name, getattr(E.EstimatorNode, name)))
+    import gc
+    gc_t = {}
+
+    def on_gc(phase, info):
+        if phase == 'start':
+            gc_t['t'] = time.perf_counter()
+        elif 't' in gc_t:
+            dt = time.perf_counter() - gc_t.pop('t')
+            if dt > 0.005:
+                gcs.append((info.get('generation'), round(dt * 1e3, 1), round(time.time(), 3)))
+    gc.callbacks.append(on_gc)
     init = E.EstimatorNode.__init__
 
     def keep(self, *args, **kw):
@@ -261,7 +289,8 @@ def estimator(a, ros_args) -> int:
                             'callbacks_s': st['cb_ns'] * 1e-9, 'calls': st['calls'],
                             'process_s': st['proc1'] - (st['proc0'] or 0.0),
                             'received': received,
-                            'executor': os.environ.get('DGP_EXECUTOR', '')})
+                            'executor': os.environ.get('DGP_EXECUTOR', ''),
+                            'slow_callbacks': slow[-200:], 'gc_pauses': gcs[-200:]})
     return code
 
 

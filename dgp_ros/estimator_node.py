@@ -42,6 +42,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
+from dgp_ros.executor import DeferredResponse, WaitSetExecutor
 from dgp_ros.messages import joint_state_sample
 from dgp_ros.node_runtime import (check_unknown_overrides, declare_parameters, help_text,
                                   reject_unknown, run, set_batch_handler)
@@ -399,8 +400,17 @@ class EstimatorNode(Node):
 
     # ------------------------------------------------------------ services
     def _srv_refit(self, request, response):
-        response.success, response.message = self.estimator.request_refit()
-        return response
+        if not isinstance(self.executor, WaitSetExecutor):    # rclpy's: the answer, now
+            response.success, response.message = self.estimator.request_refit()
+            return response
+        # the learner's reply answers it later: the message path does not wait for the learner
+        later = DeferredResponse()
+
+        def done(result):
+            response.success, response.message = result
+            later.send(response)
+        self.estimator.request_refit_async(done)
+        return later
 
     def _srv_reset(self, request, response):
         self.estimator.reset()

@@ -10,6 +10,7 @@ another); docs/BENCHMARKS.md (``arm_live``) measures the three.
 """
 from __future__ import annotations
 
+from collections import deque
 from contextlib import ExitStack
 import time
 from typing import Callable, List, Optional
@@ -18,7 +19,40 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.subscription import Subscription
 
-__all__ = ['WaitSetExecutor', 'set_batch_handler']
+__all__ = ['WaitSetExecutor', 'set_batch_handler', 'DeferredResponse']
+
+
+class DeferredResponse:
+    """
+    A service response sent later: a service callback returns one to answer after it returned.
+
+    ``send(response)`` may be called from any thread (a learner's reply arriving in its receiver
+    thread), before or after the callback returned; the executor's own thread sends it. Only
+    :class:`WaitSetExecutor` takes it (rclpy's executors need the response from the callback).
+    """
+
+    def __init__(self):
+        import threading
+        self._lock = threading.Lock()
+        self._bound = None              # (executor, service, request header)
+        self._response = None
+
+    def send(self, response) -> None:
+        """Send ``response`` (once; later calls are ignored)."""
+        with self._lock:
+            if self._response is not None:
+                return
+            self._response = response
+            bound = self._bound
+        if bound is not None:
+            bound[0]._outbox_put(bound[1], bound[2], response)
+
+    def _bind(self, executor, srv, header) -> None:
+        with self._lock:
+            self._bound = (executor, srv, header)
+            response = self._response
+        if response is not None:
+            executor._outbox_put(srv, header, response)
 
 
 def set_batch_handler(sub: Subscription, handler: Callable, max_batch: int) -> None:
@@ -50,7 +84,9 @@ class WaitSetExecutor:
        message waiting (at most its ``max_batch``) in one call; any other one gets one message
        per callback, as in rclpy.
 
-    The wait set and the entity handles are kept between wake-ups and rebuilt only when the
+    A service callback may return a :class:`DeferredResponse` and answer later (from any
+    thread): the response is sent at the next wake-up. The wait set and the entity handles are
+    kept between wake-ups and rebuilt only when the
     nodes' entities change (rclpy calls ``wake`` on every create and destroy). An exception in a
     callback propagates out of ``spin_once``, as with rclpy's executors; a coroutine callback
     is not supported. ``stats``: thread CPU (ns) spent in ``spin_once`` and in batch handlers,
@@ -73,6 +109,7 @@ class WaitSetExecutor:
         self._ws = None
         self._events_at = 0.0
         self._is_shutdown = False
+        self._outbox: deque = deque()        # deferred responses (service, header, response)
         self.stats = {'spins': 0, 'cpu_spin_ns': 0, 'cpu_batch_ns': 0, 'messages': 0,
                       'batches': 0, 'max_batch': 0}
 
@@ -186,9 +223,18 @@ class WaitSetExecutor:
             st['spins'] += 1
             st['cpu_spin_ns'] += time.thread_time_ns() - t0
 
+    def _flush_outbox(self) -> None:
+        while self._outbox:
+            srv, header, response = self._outbox.popleft()
+            try:
+                srv.send_response(response, header)
+            except InvalidHandle:       # the service is gone: nobody to answer
+                pass
+
     def _spin_once(self, timeout_sec: Optional[float]) -> None:
         if self._dirty:
             self._rebuild()
+        self._flush_outbox()
         ws = self._ws
         ws.clear_entities()
         i_subs = [ws.add_subscription(s.handle) for s, _, _ in self._subs]
@@ -208,6 +254,7 @@ class WaitSetExecutor:
         ws.wait(int(timeout * 1e9))
         if self._dirty or not self._context.ok():
             return                      # entities changed (or shut down): rebuild first
+        self._flush_outbox()
         ready = ws.is_ready
         for s, i in zip(self._services, i_services):
             if ready('service', i):
@@ -238,9 +285,8 @@ class WaitSetExecutor:
                 else:
                     self._take_batch(s, *batch)
 
-    @staticmethod
-    def _serve(srv) -> None:
-        """Answer every request waiting at ``srv``."""
+    def _serve(self, srv) -> None:
+        """Answer every request waiting at ``srv`` (a ``DeferredResponse`` later)."""
         while True:
             try:
                 with srv.handle:
@@ -249,7 +295,25 @@ class WaitSetExecutor:
                 return
             if header is None:
                 return
-            srv.send_response(srv.callback(request, srv.srv_type.Response()), header)
+            response = srv.callback(request, srv.srv_type.Response())
+            if isinstance(response, DeferredResponse):
+                response._bind(self, srv, header)
+            else:
+                srv.send_response(response, header)
+
+    def _outbox_put(self, srv, header, response) -> None:
+        """Queue a deferred response for this executor's thread and wake it."""
+        self._outbox.append((srv, header, response))
+        self.wake_only()
+
+    def wake_only(self) -> None:
+        """Wake the wait (without rebuilding the wait set)."""
+        guard = self._guard
+        if guard is not None:
+            try:
+                guard.trigger()
+            except InvalidHandle:
+                pass
 
     @staticmethod
     def _respond(client) -> None:

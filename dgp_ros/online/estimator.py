@@ -341,6 +341,19 @@ class OnlineEstimator:
         """Refit now (in the background unless ``refit_mode='sync'``). Returns (ok, message)."""
         return self._learner.request_refit()
 
+    def request_refit_async(self, done: Callable[[Tuple[bool, str]], None]) -> None:
+        """
+        ``request_refit`` without waiting for a learner process: ``done((ok, message))``.
+
+        A learner process replies through its receiver thread (so ``done`` may run in another
+        thread); an in-process learner answers at once, in this thread.
+        """
+        f = getattr(self._learner, 'request_refit_async', None)
+        if f is None:
+            done(self._learner.request_refit())
+        else:
+            f(done)
+
     def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
         """Block until no refit is running; True if none is running at return."""
         return self._learner.wait_for_refit(timeout)

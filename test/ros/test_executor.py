@@ -16,7 +16,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import Int32  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from dgp_ros.executor import set_batch_handler, WaitSetExecutor  # noqa: E402
+from dgp_ros.executor import DeferredResponse, set_batch_handler, WaitSetExecutor  # noqa: E402,E501
 
 pytestmark = pytest.mark.ros
 
@@ -125,6 +125,47 @@ def test_services_served_between_capped_batches_under_a_flood(ctx):
         assert spin_until(ex, fut.done) and fut.result().success
         answered += 1
     assert answered == 3 and sizes and max(sizes) <= 8
+    for nd in (node, peer):
+        ex.remove_node(nd)
+        nd.destroy_node()
+    ex.shutdown()
+
+
+def test_a_deferred_response_is_sent_later_while_messages_keep_flowing(ctx):
+    """A service answered from another thread: the executor goes on with messages meanwhile."""
+    import threading
+    node = rclpy.create_node('defer_exec_test', context=ctx)
+    peer = rclpy.create_node('defer_exec_peer', context=ctx)
+    ex = WaitSetExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(peer)
+    got = []
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    sub = node.create_subscription(Int32, 'during', lambda m: None, qos)
+    set_batch_handler(sub, lambda msgs, infos: got.extend(m.data for m in msgs), 8)
+
+    def on_trigger(req, res):
+        later = DeferredResponse()
+
+        def answer():
+            time.sleep(0.3)
+            res.success, res.message = True, 'later'
+            later.send(res)
+        threading.Thread(target=answer).start()
+        return later
+    node.create_service(Trigger, 'trigger', on_trigger)
+    pub = peer.create_publisher(Int32, 'during', qos)
+    cli = peer.create_client(Trigger, 'trigger')
+    assert spin_until(ex, lambda: pub.get_subscription_count() == 1 and cli.service_is_ready())
+    fut = cli.call_async(Trigger.Request())
+    end = time.monotonic() + 10
+    i = 0
+    while not fut.done() and time.monotonic() < end:
+        pub.publish(Int32(data=i))
+        i += 1
+        ex.spin_once(timeout_sec=0.01)
+    assert fut.done() and fut.result().message == 'later'
+    assert len(got) > 5                 # messages were handled while the answer was pending
     for nd in (node, peer):
         ex.remove_node(nd)
         nd.destroy_node()
