@@ -236,13 +236,16 @@ def _killer(est_pid: int, sc: Scenario, t_start: float, seconds: float, ros_env:
             if until is not None and until():
                 return True
         return False
-    period = seconds / (sc.kills + 1)
-    spin_for(max(0.0, t_start + period - time.time()))
+    # the kills begin once a model is trained (a kill before it only restarts the first fit)
+    spin_for(max(0.0, t_start - time.time()))
+    spin_for(seconds, lambda: last.get('trained') == 'True')
+    t0 = time.time()
+    period = max(1.5, (seconds - (t0 - t_start)) / (sc.kills + 1))
     for k in range(sc.kills):
         if stop.is_set():
             break
         t_next = time.time() + period
-        rec = {'k': k}
+        rec = {'k': k, 'trained': last.get('trained')}
         if cli.service_is_ready():
             fut = cli.call_async(Trigger.Request())
             spin_for(5.0, fut.done)
@@ -647,7 +650,9 @@ def section(a, runs: List[dict], held: Optional[dict], wall: float, names) -> st
             s = r['sum']
             d = s['diag']
             learned = int(d.get('samples_added', 0) or 0)
-            rows.append([r['label'], learned, f'{learned / r["seconds"]:.0f}',
+            rows.append([r['label'], d.get('messages_received', '-'), learned,
+                         f'{learned / r["seconds"]:.0f}', d.get('samples_pending', '-'),
+                         f'{d.get("samples_skipped", "-")} / {d.get("samples_outliers", "-")}',
                          d.get('samples_dropped', '-'), f'{100 * s["answered"]:.2f} %',
                          f'{s.get("node_cores", 0):.2f}', f'{s.get("learner_cores", 0):.2f}',
                          C.fmt(s.get('us_ours'))])
@@ -655,9 +660,10 @@ def section(a, runs: List[dict], held: Optional[dict], wall: float, names) -> st
                   "Learned per second of stream: the learner process's `samples_added` at the "
                   "end over the stream's length (what went in end to end); the ring between "
                   'the processes drops (and counts) what the learner cannot take.', '',
-                  C.md_table(['scenario', 'samples learned', 'learned / s', 'dropped at ring',
-                              'answered', 'node cores', 'learner cores',
-                              'message path us/msg'], rows), '']
+                  C.md_table(['scenario', 'messages received', 'samples learned',
+                              'learned / s', 'still in the ring at the end',
+                              'skipped / outliers', 'dropped at the ring', 'answered',
+                              'node cores', 'learner cores', 'message path us/msg'], rows), '']
     cpu_rows = [r for r in runs if r['scenario'].startswith('cpu_') or r['scenario'] == 'khz']
     if any(r['scenario'].startswith('cpu_') for r in runs):
         rows = []
