@@ -197,8 +197,9 @@ def listener(a) -> None:
             if fut.done():
                 probes[kind].append((now(), time.monotonic() - t0))
                 del pending[kind]
-    for kind, (fut, t0) in pending.items():          # never answered
-        probes[kind].append((now(), float('inf')))
+    for kind, (fut, t0) in pending.items():          # unanswered (in flight at the end: not)
+        if time.monotonic() - t0 > 1.0:
+            probes[kind].append((now(), float('inf')))
     from rclpy.serialization import deserialize_message
     efforts = np.array([deserialize_message(r, JointState).effort for r in raws]) if raws \
         else np.zeros((0, 0))
@@ -255,6 +256,14 @@ def estimator(a, ros_args) -> int:
                 if dt > 0.02:
                     slow.append((name, round(dt * 1e3, 1), round(time.time(), 3)))
         return wrapper
+    diag_t = []
+    if hasattr(E.EstimatorNode, '_publish_diagnostics'):
+        pd = E.EstimatorNode._publish_diagnostics
+
+        def noted(self, *args, **kw):
+            diag_t.append(time.time())
+            return pd(self, *args, **kw)
+        E.EstimatorNode._publish_diagnostics = noted
     for name in ('_on_state', '_on_states', '_publish_diagnostics', '_srv_refit', '_srv_reset',
                  '_srv_save'):
         if hasattr(E.EstimatorNode, name):
@@ -290,7 +299,8 @@ def estimator(a, ros_args) -> int:
                             'process_s': st['proc1'] - (st['proc0'] or 0.0),
                             'received': received,
                             'executor': os.environ.get('DGP_EXECUTOR', ''),
-                            'slow_callbacks': slow[-200:], 'gc_pauses': gcs[-200:]})
+                            'slow_callbacks': slow[-200:], 'gc_pauses': gcs[-200:],
+                            'diag_times': diag_t})
     return code
 
 

@@ -17,6 +17,7 @@ What every node process of this package shares: --help, parameters, and a clean 
 from __future__ import annotations
 
 import difflib
+import gc
 import os
 import signal
 import sys
@@ -186,6 +187,9 @@ def run(prog: str, make_node: Callable, help_message: str, args=None) -> int:
     try:
         executor = _executor(context)
         node = make_node(context)
+        # what start-up built lives as long as the process: out of the collector's full scans
+        # (a gen-2 collection of it took 260 ms in the message path under a 10 kHz stream)
+        gc.freeze()
         executor.add_node(node)
         while not stop.is_set() and context.ok() and not getattr(node, 'done', False):
             executor.spin_once(timeout_sec=0.1)

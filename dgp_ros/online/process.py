@@ -379,7 +379,10 @@ class LearnerProcess:
         ring = self._ring
         if ring is not None:
             try:
-                d['samples_pending'] = ring.pending()       # sent, not yet taken by the learner
+                # sent, not yet taken by the learner; never waits on a learner holding the lock
+                pending = ring.pending(timeout=ring.LOCK_TIMEOUT_S)
+                if pending is not None:
+                    d['samples_pending'] = pending
             except Exception:       # noqa: BLE001 - a ring being replaced: next time
                 pass
         warnings = list(d.get('warnings', []))
