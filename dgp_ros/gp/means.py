@@ -297,14 +297,21 @@ class BasisFrictionMean(PriorMean):
         return self
 
     def _diag_at(self, a: np.ndarray) -> np.ndarray:
+        # every basis function in one vectorized call (the message path evaluates this for
+        # every answer: one call per basis function cost ~18 us each); the terms are added in
+        # the same order as one at a time, so the result is the same to the bit
         K = self.eps.size
         out = self.coef[:, 0] + 0.0 * a
+        if K == 0 and not self.vs.size:
+            return out
+        T = _tanh_over(a[..., None], np.append(self.eps, self.eps_s))      # (..., N, K + 1)
         for k in range(K):
-            out = out + self.coef[:, 1 + k] * _tanh_over(a, self.eps[k])
+            out = out + self.coef[:, 1 + k] * T[..., k]
         if self.vs.size:
-            t = _tanh_over(a, self.eps_s)
-            for s, vs in enumerate(self.vs):
-                out = out + self.coef[:, 1 + K + s] * t * np.exp(-(a / vs) ** 2)
+            t = T[..., K]
+            G = np.exp(-(a[..., None] / self.vs) ** 2)                       # (..., N, S)
+            for s in range(self.vs.size):
+                out = out + self.coef[:, 1 + K + s] * t * G[..., s]
         return out
 
     def diag(self, Qd):

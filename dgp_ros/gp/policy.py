@@ -127,6 +127,8 @@ def project_passive(Q: np.ndarray, Tau: np.ndarray, w_inv: Optional[np.ndarray] 
     """
     Q = np.asarray(Q, float)
     Tau = np.asarray(Tau, float)
+    if (np.einsum('ij,ij->i', Q, Tau) >= 0.0).all():
+        return Tau.copy()       # already passive (the usual case: every answer goes through)
     wi = np.ones(Q.shape[1]) if w_inv is None else np.asarray(w_inv, float)
     lam = projection_lambda(Q, Tau, wi)
     out = Tau + lam[:, None] * (Q * wi)

@@ -17,6 +17,7 @@ import numpy as np
 
 from dgp_ros.gp import passive_tolerance
 
+from .plan import PlanCache
 from .snapshot import Snapshot
 
 __all__ = ['answer', 'Estimate', 'BOUND_FACTOR']
@@ -56,20 +57,27 @@ class Estimate:
 
 
 def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damping: bool,
-           passivity: str, health, note_error: Callable[[str], None]):
+           passivity: str, health, note_error: Callable[[str], None],
+           plans: Optional[PlanCache] = None):
     """
     Answer velocities Q (k, N) from ``snap`` through the gate (module docstring).
 
     Returns (tau_hat (k, N), std (k, N), D (k, N, N) or None, source (k,) of 'model' |
     'prior' | 'fallback'); ``std`` is NaN where not wanted, ``D`` None where not wanted.
-    ``health`` counts what the gate did; ``note_error`` records a failed prediction.
+    ``health`` counts what the gate did; ``note_error`` records a failed prediction. With
+    ``plans``, answers without the variance come from the snapshot's ``plan.AnswerPlan`` (the
+    same mean in one lean pass).
     """
     k, N = Q.shape
     source = np.array(['prior'] * k, dtype=object)
     tau = std = D = None
     if snap is not None and snap.model is not None:
         try:
-            tau, var, D = snap.model.predict_with_damping(Q, want_stddev, want_damping)
+            plan = None if want_stddev or plans is None else plans.get(snap.model)
+            if plan is not None:
+                (tau, D), var = plan.answers(Q, want_damping), None
+            else:
+                tau, var, D = snap.model.predict_with_damping(Q, want_stddev, want_damping)
             std = (np.sqrt(np.maximum(var, 0.0)) if var is not None
                    else np.full((k, N), np.nan))
             source[:] = 'model'
@@ -139,12 +147,16 @@ def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, he
 def _bound(snap: Snapshot, Q, tau, D, health):
     """Scale down answers beyond ``BOUND_FACTOR`` x the learned force (or the prior's)."""
     limit = BOUND_FACTOR * np.maximum(snap.force_bound, 1e-12)
-    if snap.prior is not None:
+    worst = (np.abs(tau) / limit).max(axis=1)
+    big = worst > 1.0
+    if snap.prior is not None and big.any():
+        # the prior's own force raises the limit: evaluated only where the learned one is
+        # exceeded (a larger limit never makes an answer within the learned one big)
+        Qb = Q[big]
         with np.errstate(invalid='ignore'):
-            prior = np.abs(np.asarray(snap.prior.diag(Q), float) * Q)
-        limit = np.maximum(limit, np.where(np.isfinite(prior), prior, 0.0))
-    over = np.abs(tau) / limit
-    worst = over.max(axis=1)
+            prior = np.abs(np.asarray(snap.prior.diag(Qb), float) * Qb)
+        lb = np.maximum(limit, np.where(np.isfinite(prior), prior, 0.0))
+        worst[big] = (np.abs(tau[big]) / lb).max(axis=1)
     big = worst > 1.0
     if np.any(big):
         health.answers_bounded += int(big.sum())

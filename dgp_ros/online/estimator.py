@@ -32,6 +32,7 @@ from .answer import answer, Estimate
 from .config import EstimatorConfig
 from .health import Health
 from .learner import FRONT_END, Learner
+from .plan import PlanCache
 from .snapshot import Snapshot
 
 __all__ = ['OnlineEstimator', 'Estimate']
@@ -63,6 +64,7 @@ class OnlineEstimator:
         self._want_stddev = True
         self._want_damping = True
         self._want_residuals = True
+        self._plans = PlanCache()             # the lean pass of the snapshot answered from
         if self.config.refit_mode == 'process':
             from .process import LearnerProcess
             self._learner = LearnerProcess(self.config)
@@ -81,6 +83,7 @@ class OnlineEstimator:
         self._advancing = 0
         self._arrival_t0: Optional[float] = None        # set: learning uses arrival time
         self._last_est: Optional[Estimate] = None
+        self._order = None                  # (a message's names, their configured order)
         self.health = Health()
 
     def set_outputs(self, stddev: bool = True, damping: bool = True,
@@ -293,11 +296,17 @@ class OnlineEstimator:
                 (p is not None and p.size != v.size):
             return 'length_mismatch'
         if self._names is not None and names:
-            pos = {n: i for i, n in enumerate(names)}
-            try:
-                idx = [pos[n] for n in self._names]
-            except KeyError:
-                return 'missing_joint'
+            key = tuple(names)
+            cached = self._order
+            if cached is not None and cached[0] == key:     # a driver sends the same names
+                idx = cached[1]
+            else:
+                pos = {n: i for i, n in enumerate(names)}
+                try:
+                    idx = np.array([pos[n] for n in self._names], dtype=np.intp)
+                except KeyError:
+                    return 'missing_joint'
+                self._order = (key, idx)
             v, e, names = v[idx], e[idx], list(self._names)
             p = None if p is None else p[idx]
         elif self._names is not None and not names and self.config.joints:
@@ -306,11 +315,11 @@ class OnlineEstimator:
             return 'too_many_joints'
         if self._N is not None and v.size != self._N:
             return 'dimension_mismatch'
-        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(e)) and
-                (p is None or np.all(np.isfinite(p)))):
+        if not (np.isfinite(v).all() and np.isfinite(e).all() and
+                (p is None or np.isfinite(p).all())):
             return 'non_finite'
-        if np.any(np.abs(v) > self.config.max_abs_velocity) or \
-                np.any(np.abs(e) > self.config.max_abs_effort):
+        if (np.abs(v) > self.config.max_abs_velocity).any() or \
+                (np.abs(e) > self.config.max_abs_effort).any():
             return 'out_of_range'
         return names, v, e, p
 
@@ -318,7 +327,7 @@ class OnlineEstimator:
     def _estimate(self, snap: Optional[Snapshot], Q: np.ndarray):
         """(tau_hat, std, D, source) for velocities Q (k, N) from ``snap``, through the gate."""
         return answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
-                      self.health, self._learner.note_error)
+                      self.health, self._learner.note_error, self._plans)
 
     def predict(self, Qs) -> np.ndarray:
         """Estimates (k, N) at velocities Qs with the rules of ``process`` (no learning)."""
@@ -331,6 +340,19 @@ class OnlineEstimator:
     def request_refit(self) -> Tuple[bool, str]:
         """Refit now (in the background unless ``refit_mode='sync'``). Returns (ok, message)."""
         return self._learner.request_refit()
+
+    def request_refit_async(self, done: Callable[[Tuple[bool, str]], None]) -> None:
+        """
+        ``request_refit`` without waiting for a learner process: ``done((ok, message))``.
+
+        A learner process replies through its receiver thread (so ``done`` may run in another
+        thread); an in-process learner answers at once, in this thread.
+        """
+        f = getattr(self._learner, 'request_refit_async', None)
+        if f is None:
+            done(self._learner.request_refit())
+        else:
+            f(done)
 
     def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
         """Block until no refit is running; True if none is running at return."""
@@ -391,6 +413,9 @@ class OnlineEstimator:
             d.update({k: v for k, v in learner.items()
                       if k not in ('warnings', 'version', 'refit_durations')})
             d.update(self.health.counters())
+            if self._plans.mismatches:
+                # the lean pass disagreed with the model (answers came from the model)
+                d['answer_plan_mismatches'] = self._plans.mismatches
             warnings = list(learner.get('warnings', []))
             if self._arrival_t0 is not None:
                 warnings.insert(0, 'message stamps do not advance (header.stamp constant or 0): '

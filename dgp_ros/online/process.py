@@ -85,6 +85,7 @@ class LearnerProcess:
         self.nice = int(nice)
         self._lock = threading.Lock()
         self._replies: dict = {}
+        self._callbacks: dict = {}          # id -> (done, deadline) of calls not waited for
         self._reply_cv = threading.Condition(self._lock)
         self._ids = itertools.count(1)
         self._snap = None
@@ -172,8 +173,12 @@ class LearnerProcess:
                 self._residuals.extend(msg[1])
             elif kind == 'reply':
                 with self._reply_cv:
-                    self._replies[msg[1]] = (msg[2], msg[3])
-                    self._reply_cv.notify_all()
+                    cb = self._callbacks.pop(msg[1], None)
+                    if cb is None:
+                        self._replies[msg[1]] = (msg[2], msg[3])
+                        self._reply_cv.notify_all()
+                if cb is not None:
+                    cb[0]((msg[2], msg[3]))
         proc.join(1.0)
         if self._closing or proc is not self._proc:
             return
@@ -185,6 +190,9 @@ class LearnerProcess:
                 if self._replies[i] is None:
                     self._replies[i] = (False, 'the learner process died')
             self._reply_cv.notify_all()
+            orphans, self._callbacks = list(self._callbacks.values()), {}
+        for done, _ in orphans:
+            done((False, 'the learner process died'))
         while not self._closing:
             try:
                 snap = self._snap
@@ -213,6 +221,35 @@ class LearnerProcess:
                     return False, f'the learner did not answer {kind!r} in time'
                 self._reply_cv.wait(left)
             return self._replies.pop(i)
+
+    def _call_async(self, kind: str, done, *args, timeout: Optional[float] = None) -> None:
+        """
+        Send a command without waiting: ``done((ok, payload))`` is called with its reply.
+
+        From the receiver thread when the reply arrives, at once if the child cannot be reached,
+        with (False, why) if the child dies first or does not answer in time (checked by
+        ``status``).
+        """
+        i = next(self._ids)
+        deadline = time.monotonic() + (self.REPLY_TIMEOUT_S if timeout is None else timeout)
+        with self._reply_cv:
+            self._callbacks[i] = (done, deadline)
+        try:
+            self._cmd.send((kind, i) + args)
+        except (OSError, ValueError) as exc:
+            with self._reply_cv:
+                cb = self._callbacks.pop(i, None)
+            if cb is not None:
+                done((False, f'the learner process is not reachable: {exc}'))
+
+    def _expire_calls(self) -> None:
+        """Answer the calls not waited for whose reply is overdue."""
+        now = time.monotonic()
+        with self._reply_cv:
+            late = [i for i, (_, dl) in self._callbacks.items() if dl < now]
+            late = [self._callbacks.pop(i) for i in late]
+        for done, _ in late:
+            done((False, 'the learner did not answer in time'))
 
     def _send(self, *msg) -> None:
         try:
@@ -280,6 +317,10 @@ class LearnerProcess:
     def request_refit(self) -> Tuple[bool, str]:
         return self._call('refit')
 
+    def request_refit_async(self, done) -> None:
+        """``request_refit`` without waiting: ``done((ok, message))`` with the reply."""
+        self._call_async('refit', done)
+
     def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
         """Block until the child has no job running and its newest snapshot is installed."""
         t = 3600.0 if timeout is None else float(timeout)
@@ -330,10 +371,20 @@ class LearnerProcess:
         return path
 
     def status(self) -> dict:
+        self._expire_calls()
         d = dict(self._status)
         d['samples_dropped'] = self.samples_dropped
         d['learner_restarts'] = self.restarts
         d['learner_alive'] = self._proc is not None and self._proc.is_alive()
+        ring = self._ring
+        if ring is not None:
+            try:
+                # sent, not yet taken by the learner; never waits on a learner holding the lock
+                pending = ring.pending(timeout=ring.LOCK_TIMEOUT_S)
+                if pending is not None:
+                    d['samples_pending'] = pending
+            except Exception:       # noqa: BLE001 - a ring being replaced: next time
+                pass
         warnings = list(d.get('warnings', []))
         if self.exit_reason:
             warnings.append(self.exit_reason)

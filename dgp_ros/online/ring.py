@@ -74,10 +74,14 @@ class SampleRing:
             self._lock.release()
         return True
 
-    def pending(self) -> int:
-        """Rows written and not yet taken."""
-        with self._lock:
+    def pending(self, timeout: float = -1) -> Optional[int]:
+        """Rows written and not yet taken; None if the lock is not free within ``timeout`` s."""
+        if not self._lock.acquire(timeout=None if timeout < 0 else timeout):
+            return None
+        try:
             return int(self._hdr[0] - self._hdr[1])
+        finally:
+            self._lock.release()
 
     def take(self, max_rows: Optional[int] = None) -> np.ndarray:
         """Return a copy of the rows waiting (oldest first, at most ``max_rows``), (k, width)."""

@@ -8,7 +8,6 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402,I100
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
@@ -16,6 +15,7 @@ from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from dgp_ros.estimator_node import EstimatorNode  # noqa: E402
+from dgp_ros.node_runtime import _executor  # noqa: E402
 from dgp_ros.online import EstimatorConfig  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -56,7 +56,8 @@ class Rig:
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx)
         self.nodes = []
-        self.ex = SingleThreadedExecutor(context=self.ctx)
+        # the node's own executor (DGP_EXECUTOR, default the wait-set loop)
+        self.ex = _executor(self.ctx)
         self.est = None
         self.helper = rclpy.create_node('helper', context=self.ctx)
         self._add(self.helper)

@@ -1,0 +1,342 @@
+#!/usr/bin/env python3
+"""
+The processes of bench/arm_live.py, one role each: player, listener, estimator, hog.
+
+* ``player``: a simulated Panda's raw /joint_states (7 joints and a finger joint, like a driver)
+  published at absolute deadlines in phases ``RATE:SECONDS,...``; each phase samples the
+  trajectory at its own rate, and every stamp is the message's deadline on the wall clock (the
+  answers' age is then wall time minus stamp). ``frame_id`` is the sequence number.
+* ``listener``: receives the measurements and the answers (raw CDR; stamps and the answers'
+  effort deserialized after the run) and /diagnostics; optionally probes services under the stream:
+  ``/dgp_estimator/get_parameters`` (served by the executor alone) and ``~/refit`` (served by
+  the learner). It uses the node's own wait-set executor (``dgp_ros.executor``) with batch
+  handlers, about 30 us of Python per message, so that it is not the bottleneck it would be with
+  rclpy's SingleThreadedExecutor (0.5 ms per message, two messages per answer).
+* ``estimator``: ``dgp_ros.estimator_node.main`` of whatever tree PYTHONPATH names, with the
+  message callbacks timed (thread CPU, re-entry counted once): at exit it writes its main
+  thread's CPU and the process's from the first message callback to the end of the last, and
+  the callbacks' share, as JSON (``--cpu-out``): the same split for the code before and after
+  a change.
+* ``hog``: one busy loop (another process keeping a core busy).
+
+Each writes its results when it gets SIGINT or SIGTERM (``--out``), and ``--ready`` once set up.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import struct
+import sys
+import threading
+import time
+
+TOPIC_IN = '/joint_states'
+TOPIC_OUT = '/dgp_estimator/damping_force'
+FINGER = 'panda_finger_joint1'
+
+
+def _stop_event():
+    stop = threading.Event()
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, lambda *_: stop.set())
+    return stop
+
+
+def _write_json(path: str, obj) -> None:
+    tmp = path + '.tmp'
+    with open(tmp, 'w') as f:
+        json.dump(obj, f)
+    os.replace(tmp, path)
+
+
+# ----------------------------------------------------------------------------- player
+def player(a) -> None:
+    import numpy as np
+    stop = _stop_event()
+    from dgp_ros.dynamics import ARM_JOINTS, simulate_arm
+    names = list(ARM_JOINTS['panda']) + [FINGER]
+    phases = [(float(r), float(s)) for r, s in (p.split(':') for p in a.phases.split(','))]
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import JointState
+    from array import array
+    # the messages first (the publishing loop only stamps and publishes)
+    msgs, offsets = [], []
+    t_sim = 0.0
+    for rate, secs in phases:
+        d = simulate_arm('panda', secs, rate_hz=rate, seed=a.seed, t0_s=t_sim)
+        for t, q, v, e in zip(d['t'], d['q'], d['qd'], d['effort']):
+            m = JointState()
+            m.name = names
+            m.position = array('d', np.r_[q, 0.02].tolist())
+            m.velocity = array('d', np.r_[v, 0.0].tolist())
+            m.effort = array('d', np.r_[e, 0.1].tolist())
+            msgs.append(m)
+            offsets.append(float(t))
+        t_sim += secs
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node('arm_live_player', context=ctx)
+    pub = node.create_publisher(JointState, TOPIC_IN,
+                                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    open(a.ready, 'w').write('ok')
+    deadline = time.monotonic() + a.wait
+    while pub.get_subscription_count() < a.min_subscribers and not stop.is_set():
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    time.sleep(0.5)                                # discovery of the answers' direction too
+    t0_wall = time.time() + 0.05
+    t0_mono = time.monotonic() + 0.05
+    late = []
+    n = 0
+    for i, (m, off) in enumerate(zip(msgs, offsets)):
+        if stop.is_set():
+            break
+        dl = t0_mono + off
+        now = time.monotonic()
+        if dl > now:
+            time.sleep(dl - now)
+        stamp = t0_wall + off
+        m.header.stamp.sec = int(stamp)
+        m.header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
+        m.header.frame_id = str(i)
+        pub.publish(m)
+        late.append(time.monotonic() - dl)
+        n += 1
+    late = np.array(late) if late else np.zeros(1)
+    _write_json(a.out, {'published': n, 't0_wall': t0_wall, 'phases': phases,
+                        'late_p50_ms': float(np.percentile(late, 50) * 1e3),
+                        'late_p99_ms': float(np.percentile(late, 99) * 1e3),
+                        'late_max_ms': float(late.max() * 1e3),
+                        'seconds': float(offsets[n - 1]) if n else 0.0})
+    node.destroy_node()
+    ctx.try_shutdown()
+
+
+# ----------------------------------------------------------------------------- listener
+def _stamp_ns(raw: bytes) -> int:
+    sec, nsec = struct.unpack_from('<iI', raw, 4)
+    return sec * 1_000_000_000 + nsec
+
+
+def listener(a) -> None:
+    import numpy as np
+    stop = _stop_event()
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rcl_interfaces.srv import GetParameters
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+    from dgp_ros.executor import set_batch_handler, WaitSetExecutor
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node('arm_live_listener', context=ctx)
+    meas, ans, raws, diags = [], [], [], []
+    probes = {'get_parameters': [], 'refit': []}
+    now = time.time
+
+    def on_meas(msgs, infos):
+        t = now()
+        meas.extend((_stamp_ns(r), t) for r in msgs)
+
+    def on_ans(msgs, infos):
+        t = now()
+        for r in msgs:
+            ans.append((_stamp_ns(r), t))
+            raws.append(r)
+
+    def on_diag(msg):
+        t = now()
+        for st in msg.status:
+            if 'dgp_estimator' in st.name:
+                d = {kv.key: kv.value for kv in st.values}
+                d['message'] = st.message
+                d['t'] = t
+                diags.append(d)
+
+    qos_be = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+    s_in = node.create_subscription(JointState, TOPIC_IN, lambda m: None, qos_be, raw=True)
+    set_batch_handler(s_in, on_meas, 1000)
+    s_out = node.create_subscription(JointState, TOPIC_OUT, lambda m: None,
+                                     QoSProfile(depth=1000), raw=True)
+    set_batch_handler(s_out, on_ans, 1000)
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
+    clients = {}
+    if a.probe_period > 0:
+        clients['get_parameters'] = (node.create_client(GetParameters,
+                                                        '/dgp_estimator/get_parameters'),
+                                     lambda: GetParameters.Request(names=['buffer_size']),
+                                     a.probe_period)
+    if a.refit_period > 0:
+        clients['refit'] = (node.create_client(Trigger, '/dgp_estimator/refit'),
+                            Trigger.Request, a.refit_period)
+    pending = {}
+
+    def probe(kind):
+        cli, req, _ = clients[kind]
+        if kind in pending or not cli.service_is_ready():
+            return
+        t0 = time.monotonic()
+        fut = cli.call_async(req())
+        pending[kind] = (fut, t0)
+
+    for kind, (_, _, period) in clients.items():
+        node.create_timer(period, lambda k=kind: probe(k))
+    ex = WaitSetExecutor(context=ctx)
+    ex.add_node(node)
+    open(a.ready, 'w').write('ok')
+    while not stop.is_set():
+        ex.spin_once(timeout_sec=0.02)
+        for kind, (fut, t0) in list(pending.items()):
+            if fut.done():
+                probes[kind].append((now(), time.monotonic() - t0))
+                del pending[kind]
+    for kind, (fut, t0) in pending.items():          # unanswered (in flight at the end: not)
+        if time.monotonic() - t0 > 1.0:
+            probes[kind].append((now(), float('inf')))
+    from rclpy.serialization import deserialize_message
+    efforts = np.array([deserialize_message(r, JointState).effort for r in raws]) if raws \
+        else np.zeros((0, 0))
+    np.savez(a.out, meas=np.array(meas, dtype=float).reshape(-1, 2),
+             ans=np.array(ans, dtype=float).reshape(-1, 2), effort=efforts,
+             diags=json.dumps(diags), probes=json.dumps(probes))
+    ex.shutdown()
+    node.destroy_node()
+    ctx.try_shutdown()
+
+
+# ----------------------------------------------------------------------------- estimator
+def estimator(a, ros_args) -> int:
+    """Run the node of the tree on PYTHONPATH with its message callbacks timed."""
+    from dgp_ros import estimator_node as E
+    st = {'cb_ns': 0, 'calls': 0, 'depth': 0, 'node': None, 'main0': None, 'proc0': None,
+          'main1': 0, 'proc1': 0.0}
+
+    def proc_s():
+        t = os.times()
+        return t.user + t.system
+
+    def timed(fn):
+        def wrapper(*args, **kw):
+            if st['depth']:
+                return fn(*args, **kw)
+            st['depth'] += 1
+            t0 = time.thread_time_ns()
+            if st['main0'] is None:
+                st['main0'], st['proc0'] = t0, proc_s()
+            try:
+                return fn(*args, **kw)
+            finally:
+                t1 = time.thread_time_ns()
+                st['cb_ns'] += t1 - t0
+                st['calls'] += 1
+                st['depth'] -= 1
+                st['main1'], st['proc1'] = t1, proc_s()
+        return wrapper
+
+    for name in ('_on_state', '_on_states'):
+        if hasattr(E.EstimatorNode, name):
+            setattr(E.EstimatorNode, name, timed(getattr(E.EstimatorNode, name)))
+    # where the long stalls come from: the slowest callbacks (wall) and garbage collections
+    slow, gcs = [], []
+
+    def walled(name, fn):
+        def wrapper(*args, **kw):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kw)
+            finally:
+                dt = time.perf_counter() - t0
+                if dt > 0.02:
+                    slow.append((name, round(dt * 1e3, 1), round(time.time(), 3)))
+        return wrapper
+    diag_t = []
+    if hasattr(E.EstimatorNode, '_publish_diagnostics'):
+        pd = E.EstimatorNode._publish_diagnostics
+
+        def noted(self, *args, **kw):
+            diag_t.append(time.time())
+            return pd(self, *args, **kw)
+        E.EstimatorNode._publish_diagnostics = noted
+    for name in ('_on_state', '_on_states', '_publish_diagnostics', '_srv_refit', '_srv_reset',
+                 '_srv_save'):
+        if hasattr(E.EstimatorNode, name):
+            setattr(E.EstimatorNode, name, walled(name, getattr(E.EstimatorNode, name)))
+    import gc
+    gc_t = {}
+
+    def on_gc(phase, info):
+        if phase == 'start':
+            gc_t['t'] = time.perf_counter()
+        elif 't' in gc_t:
+            dt = time.perf_counter() - gc_t.pop('t')
+            if dt > 0.005:
+                gcs.append((info.get('generation'), round(dt * 1e3, 1), round(time.time(), 3)))
+    gc.callbacks.append(on_gc)
+    init = E.EstimatorNode.__init__
+
+    def keep(self, *args, **kw):
+        init(self, *args, **kw)
+        st['node'] = self
+    E.EstimatorNode.__init__ = keep
+    code = E.main(['estimator'] + ros_args)
+    node = st['node']
+    received = None
+    if node is not None:
+        try:
+            received = int(node.estimator.health.messages_received)
+        except Exception:       # noqa: BLE001 - an older tree
+            received = None
+    # from the first message callback to the end of the last one
+    _write_json(a.cpu_out, {'main_thread_s': (st['main1'] - (st['main0'] or 0)) * 1e-9,
+                            'callbacks_s': st['cb_ns'] * 1e-9, 'calls': st['calls'],
+                            'process_s': st['proc1'] - (st['proc0'] or 0.0),
+                            'received': received,
+                            'executor': os.environ.get('DGP_EXECUTOR', ''),
+                            'slow_callbacks': slow[-200:], 'gc_pauses': gcs[-200:],
+                            'diag_times': diag_t})
+    return code
+
+
+def hog(a) -> None:
+    while True:
+        pass
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument('role', choices=['player', 'listener', 'estimator', 'hog'])
+    p.add_argument('--out', default='')
+    p.add_argument('--ready', default='')
+    p.add_argument('--phases', default='1000:20')
+    p.add_argument('--seed', type=int, default=7)
+    p.add_argument('--wait', type=float, default=30.0)
+    p.add_argument('--min-subscribers', type=int, default=2)
+    p.add_argument('--probe-period', type=float, default=0.0)
+    p.add_argument('--refit-period', type=float, default=0.0)
+    p.add_argument('--cpu-out', default='')
+    argv = sys.argv[1:]
+    ros = []
+    if '--ros-args' in argv:
+        i = argv.index('--ros-args')
+        argv, ros = argv[:i], argv[i:]
+    a = p.parse_args(argv)
+    if a.role == 'player':
+        player(a)
+    elif a.role == 'listener':
+        listener(a)
+    elif a.role == 'estimator':
+        return estimator(a, ros)
+    else:
+        hog(a)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
