@@ -225,7 +225,7 @@ def test_flood_10k_malformed_full_paper():
                         'estimates_checked': checked}
 
 
-@pytest.mark.parametrize('model,passivity,period', [('diag', 'certified', 0.0),
+@pytest.mark.parametrize('model,passivity,period', [('diag', 'certified', 0.2),
                                                     ('ard', 'projected', 0.5),
                                                     ('full', 'none', 0.5)])
 def test_flood_other_models_and_message_order_joints(model, passivity, period):
