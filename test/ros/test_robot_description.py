@@ -136,7 +136,10 @@ def test_urdf_published_before_the_estimator_started_is_taken(rig, arm):
     residual = np.array(est.estimator.samples()[1])
     assert residual.shape[1] == len(NAMES)
     # the rigid-body torque was subtracted: the learned targets are friction-sized, not gravity
-    assert np.abs(residual).max() < 10.0, np.abs(residual).max()
+    # (joints 2 and 4 hold about 22 N m of gravity; one sample may carry a filter transient)
+    held = np.median(np.abs(np.asarray(arm['effort'])[:1500, [1, 3]]), axis=0)
+    learned = np.median(np.abs(residual[:, [1, 3]]), axis=0)
+    assert np.all(learned < 0.25 * held), (learned, held)
 
 
 def test_malformed_urdf_is_an_error_on_diagnostics_not_a_crash(rig, arm):
