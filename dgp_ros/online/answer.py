@@ -139,20 +139,28 @@ def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, he
             D[bad] = pD if pD is not None else 0.0
         source = source.copy()
         source[bad] = 'fallback'
-    if snap is not None and snap.model is not None:
+    if snap is not None and snap.velocity_box is not None:
         tau, D = _bound(snap, Q, tau, D, health)
     return tau, std, D, source
 
 
 def _bound(snap: Snapshot, Q, tau, D, health):
-    """Scale down answers beyond ``BOUND_FACTOR`` x the learned force (or the prior's)."""
+    """
+    Scale down answers beyond ``BOUND_FACTOR`` x the learned force (or the prior's).
+
+    The prior's force raises the limit as far as it goes inside the learned velocity box
+    (``velocity_box``: the query clipped into it): a prior fitted to a few samples may
+    extrapolate to many times the data (7.9x the residual's range on a Panda joint 3 s into a
+    1 kHz stream), and an answer stays within what was learned until data reach that region.
+    Also before the first fit: the answers are then the prior's.
+    """
     limit = BOUND_FACTOR * np.maximum(snap.force_bound, 1e-12)
     worst = (np.abs(tau) / limit).max(axis=1)
     big = worst > 1.0
     if snap.prior is not None and big.any():
         # the prior's own force raises the limit: evaluated only where the learned one is
         # exceeded (a larger limit never makes an answer within the learned one big)
-        Qb = Q[big]
+        Qb = np.clip(Q[big], snap.velocity_box[0], snap.velocity_box[1])
         with np.errstate(invalid='ignore'):
             prior = np.abs(np.asarray(snap.prior.diag(Qb), float) * Qb)
         lb = np.maximum(limit, np.where(np.isfinite(prior), prior, 0.0))

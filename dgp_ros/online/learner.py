@@ -323,13 +323,15 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
             if model is not None and model.posterior_.structure.has_damping:
                 # a model answers with its own prior and bounds: the same after a reload
                 mean, bound = model.mean_, np.abs(model.Y_train_).max(axis=0)
+                Q = model.X_train_
             else:
                 Q, T = self._buf.rows_unordered()
                 bound = np.abs(T).max(axis=0) if self._buf.size else np.zeros(self._N)
+            box = (Q.min(axis=0), Q.max(axis=0)) if len(Q) else None
             if model is not None and frozen:
                 model = model.snapshot(variance=variance)
             self._snap = Snapshot(version=self._version, model=model, prior=mean,
-                                  prior_std=std, force_bound=bound,
+                                  prior_std=std, force_bound=bound, velocity_box=box,
                                   learned_through=self._last_t, frozen=frozen,
                                   variance=variance or not frozen)
             return self._snap

@@ -28,6 +28,8 @@ class Snapshot:
         the first fit and the fallback of the output gate.
     prior_std : (N,) RMS of the buffer's residual after the prior (the fallback's stddev).
     force_bound : (N,) largest |force| learned per joint (bounds the answers, see the estimator).
+    velocity_box : ((N,), (N,)) the smallest and largest velocity learned per joint, None before
+        any sample: where the prior's own force may raise the answers' bound (``answer``).
     learned_through : learning time of the newest sample the learner had seen (s), or None.
     frozen : a self-contained copy (another process); variance : the posterior variance is
         available.
@@ -41,3 +43,4 @@ class Snapshot:
     learned_through: Optional[float]
     frozen: bool = False
     variance: bool = True
+    velocity_box: Optional[tuple] = None

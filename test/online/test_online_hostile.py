@@ -140,3 +140,36 @@ def test_stamps_that_recover_switch_learning_back_and_far_jumps_do_not_force_ref
         est.process(1e9 + k, NAMES, [0.1, 0.2, 0.3], [1.0, 1.0, 1.0])
         est.process(10.0 + 0.01 * k, NAMES, [0.1, 0.2, 0.3], [1.0, 1.0, 1.0])
     assert est.diagnostics()['refits_started'] - n <= 2
+
+
+def test_answers_outside_the_learned_velocities_stay_within_what_was_learned():
+    """
+    The prior raises the answers' bound only as far as it goes inside the learned velocities.
+
+    A prior fitted to a few samples (here viscous, 40 N m s/rad on joint 0) extrapolates: at
+    10x the learned velocities its force is 10x anything learned. Before and after a model,
+    the answer there is at most ``BOUND_FACTOR`` x the larger of the learned force and the
+    prior's force at the edge of the learned box, and it is counted.
+    """
+    from types import SimpleNamespace
+    from dgp_ros.gp.means import make_mean
+    from dgp_ros.online.answer import answer, BOUND_FACTOR
+    from dgp_ros.online.snapshot import Snapshot
+    rng = np.random.default_rng(3)
+    Q = rng.uniform(-0.5, 0.5, (40, 2))
+    T = np.c_[40.0 * Q[:, 0], 2.0 * Q[:, 1]]
+    prior = make_mean('viscous', 'full').fit(Q, T)
+    box = (Q.min(axis=0), Q.max(axis=0))
+    snap = Snapshot(version=1, model=None, prior=prior, prior_std=np.zeros(2),
+                    force_bound=np.abs(T).max(axis=0), learned_through=1.0, frozen=True,
+                    velocity_box=box)
+    far = np.array([[5.0, 0.1], [-5.0, 0.1], [0.2, 0.1]])
+    health = SimpleNamespace(nonfinite_outputs=0, passivity_fallbacks=0, answers_bounded=0)
+    tau, _, _, src = answer(snap, far, False, False, 'projected', health, lambda m: None)
+    edge = np.abs(prior.diag(np.clip(far, *box)) * np.clip(far, *box))
+    limit = BOUND_FACTOR * np.maximum(np.abs(T).max(axis=0), edge)
+    assert np.all(np.abs(tau) <= limit * (1 + 1e-12)), (tau, limit)
+    assert np.abs(tau[0, 0]) < 0.2 * abs(prior.diag(far[:1])[0, 0] * far[0, 0])
+    assert health.answers_bounded == 2 and list(src) == ['prior'] * 3
+    np.testing.assert_allclose(tau[2], prior.diag(far[2:])[0] * far[2])    # inside: as is
+    assert np.all(np.einsum('ij,ij->i', far, tau) >= 0.0)
