@@ -60,11 +60,34 @@ class Listener:
         self.ans = {}                # stamp [ns] -> (arrival [s], raw CDR bytes)
         self.diag = None
         self.n_diag = 0
-        be = QoSProfile(depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT)
-        node.create_subscription(JointState, '/joint_states', self._on_meas, be, raw=True)
+        self._node, self._ns, self._meas_sub, self._seen = node, ns, None, None
+        self._be = QoSProfile(depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self._JointState = JointState
         node.create_subscription(JointState, ns + '/damping_force', self._on_ans,
                                  QoSProfile(depth=10000), raw=True)
         node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+
+    def poll(self) -> bool:
+        """
+        Subscribe to the measurements once this node has discovered the estimator's answers.
+
+        The player streams once two subscriptions (the estimator's and this one) match; answers
+        published before this node has discovered the estimator's publisher are lost (2.5 s
+        of them once), so this one subscribes only after that. True once subscribed.
+        """
+        if self._meas_sub is not None:
+            return True
+        now = time.monotonic()
+        if self._seen is None:
+            if self._node.count_publishers(self._ns + '/damping_force') > 0:
+                self._seen = now
+        elif now - self._seen >= self.MATCH_S:
+            self._meas_sub = self._node.create_subscription(
+                self._JointState, '/joint_states', self._on_meas, self._be, raw=True)
+        return self._meas_sub is not None
+
+    #: discovered is not yet matched: the first 50 answers were lost once without this wait [s]
+    MATCH_S = 0.5
 
     def _on_meas(self, raw, info):
         self.meas[_stamp_ns(raw)] = _received_s(info)
@@ -211,6 +234,7 @@ def main(argv=None) -> int:
         bar = Progress(learn_s)
         last = 0.0
         while sim.poll() is None:
+            lis.poll()
             ex.spin_once(timeout_sec=0.05)
             now = time.monotonic()
             if now - t_start > a.timeout:
@@ -279,14 +303,15 @@ def _settle(ex, lis: Listener, limit_s: float, est) -> None:
         ex.spin_once(timeout_sec=0.05)
         now = time.monotonic()
         d = lis.diag or {}
-        ready = (lis.n_diag > n0 + 1 and d.get('pending_samples', '0') == '0' and
+        # samples_pending: sent to the learner process, not yet taken in
+        ready = (lis.n_diag > n0 + 1 and d.get('samples_pending', '0') == '0' and
                  d.get('refit_running', 'False') != 'True' and d.get('trained', 'True') == 'True')
         if (now - t0 >= 1.5 and ready) or now - t0 >= limit_s or est.poll() is not None:
             break
         if now - t0 >= 3.0 and now - last >= 5.0:
             last = now
             print(f'[demo] waiting for the learner ({now - t0:.0f} s, at most {limit_s:.0f}): '
-                  f'pending samples {d.get("pending_samples", "-")}, refit running '
+                  f'pending samples {d.get("samples_pending", "-")}, refit running '
                   f'{d.get("refit_running", "-")}, trained {d.get("trained", "-")}, buffer '
                   f'{d.get("buffer_fill", "-")}', flush=True)
     if not ready:
@@ -297,7 +322,7 @@ def _settle(ex, lis: Listener, limit_s: float, est) -> None:
 def _progress_text(lis: Listener) -> str:
     d = lis.diag or {}
     return (f'measurements {len(lis.meas)} | answers {len(lis.ans)} | buffer '
-            f'{d.get("buffer_fill", "-")} (pending {d.get("pending_samples", "-")}) | refits '
+            f'{d.get("buffer_fill", "-")} (pending {d.get("samples_pending", "-")}) | refits '
             f'{d.get("refits_ok", "-")} | '
             f'{d.get("message", "waiting for the estimator")}')
 

@@ -163,7 +163,12 @@ def _bound(snap: Snapshot, Q, tau, D, health):
         Qb = np.clip(Q[big], snap.velocity_box[0], snap.velocity_box[1])
         with np.errstate(invalid='ignore'):
             prior = np.abs(np.asarray(snap.prior.diag(Qb), float) * Qb)
-        lb = np.maximum(limit, np.where(np.isfinite(prior), prior, 0.0))
+        prior = np.where(np.isfinite(prior), prior, 0.0)
+        if snap.residual_bound is not None:
+            # and never beyond what the data ever reached (a prior fitted to the first second
+            # of a stream reached 2.1x the whole stream's residual inside the learned box)
+            prior = np.minimum(prior, BOUND_FACTOR * snap.residual_bound)
+        lb = np.maximum(limit, prior)
         worst[big] = (np.abs(tau[big]) / lb).max(axis=1)
     big = worst > 1.0
     if np.any(big):

@@ -114,6 +114,7 @@ class LearnerHealth:
     structure: str = ''               # prior='auto': the chosen friction / offsets / correction
     structure_scores: dict = field(default_factory=dict)   # its best CV scores
     correction_basis: str = ''        # what the conservative correction is built from
+    corrections_refused: int = 0      # corrections that would inflate the targets: not applied
 
     def refit_done(self, ok: bool, seconds: float, stamp, optimized: bool, error: str,
                    wall_time: float) -> None:
@@ -291,7 +292,8 @@ class LearnerReport:
                 'buffer_fill': 0 if self._buf is None else self._buf.size,
                 'refit_running': self.refit_running(),
                 'load_error': self.load_error, 'hyper_samples': self._opt_n,
-                'pending_samples': len(self._pending),
+                # learned while a refit runs (a sample may land just as one ends: not one)
+                'pending_samples': len(self._pending) if self.refit_running() else 0,
                 'negative_power_fraction': self.negative_power_fraction(),
                 'residual_delay_s': self._front.delay_s,
                 'accel_filter_restarts': self._front.restarts,
@@ -302,6 +304,7 @@ class LearnerReport:
                 'structure': self.health.structure,
                 'structure_scores': dict(self.health.structure_scores),
                 'correction_basis': self.health.correction_basis,
+                'corrections_refused': self.health.corrections_refused,
                 'offsets': (None if self._param is None or not self._param.offsets else
                             [round(float(b), 6) for b in self._param.bias]),
                 'warnings': self._warnings(),

@@ -96,6 +96,7 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
         self._buf: Optional[Buffer] = None
         self._history = None               # long history of prior='auto' (structure.py)
         self._param = None
+        self._rmax = None                  # largest |residual| learned per joint (structure.py)
         self._selector = Selector()
         self._seq = 0                     # samples ever added (orders the catch-up)
         self._fresh = 0                   # samples added since the model last absorbed them
@@ -332,6 +333,8 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
                 model = model.snapshot(variance=variance)
             self._snap = Snapshot(version=self._version, model=model, prior=mean,
                                   prior_std=std, force_bound=bound, velocity_box=box,
+                                  residual_bound=None if self._rmax is None else
+                                  self._rmax.copy(),
                                   learned_through=self._last_t, frozen=frozen,
                                   variance=variance or not frozen)
             return self._snap

@@ -118,6 +118,13 @@ class Buffer:
         y = None if self._y is None else self._y[:n]
         self._t[:n] = self._r[:n] - correction(y)
 
+    def residuals_unordered(self):
+        """Return the buffered raw residuals (size, N) and correction columns (or None)."""
+        n = self.size
+        if self._r is None or n == 0:
+            return np.zeros((0, self.N)), None
+        return self._r[:n], (None if self._y is None else self._y[:n])
+
     def velocities_unordered(self) -> np.ndarray:
         """Return the buffered velocities in storage order (no copy), (size, N)."""
         return self._q[:self.size] if self.size < self.capacity else self._q

@@ -30,6 +30,8 @@ class Snapshot:
     force_bound : (N,) largest |force| learned per joint (bounds the answers, see the estimator).
     velocity_box : ((N,), (N,)) the smallest and largest velocity learned per joint, None before
         any sample: where the prior's own force may raise the answers' bound (``answer``).
+    residual_bound : (N,) largest |residual| learned per joint, before any correction (None
+        after a reload): how far the prior may raise that bound at most.
     learned_through : learning time of the newest sample the learner had seen (s), or None.
     frozen : a self-contained copy (another process); variance : the posterior variance is
         available.
@@ -44,3 +46,4 @@ class Snapshot:
     frozen: bool = False
     variance: bool = True
     velocity_box: Optional[tuple] = None
+    residual_bound: Optional[np.ndarray] = None

@@ -35,6 +35,7 @@ class StructureMixin:
     _history: Optional[LongHistory] = None
     _param: Optional[ParametricFit] = None
     _names_hint: Optional[List[str]] = None
+    _rmax: Optional[np.ndarray] = None
 
     @property
     def auto(self) -> bool:
@@ -77,6 +78,12 @@ class StructureMixin:
         if not self.auto or self._history is None or self._history.samples == 0:
             return
         fit = self._history.select()
+        if fit.conservative and self._inflates(fit):
+            # a pose-dependent correction fitted to a short or narrow history can be larger
+            # than the residual it corrects (targets of 13 N m where the residual spans 2.6 on
+            # a Panda 3 s into a stream): the D-GP would learn it as damping; not that one
+            fit = self._history.fit(fit.family, fit.offsets, False)
+            self.health.corrections_refused += 1
         self._param = fit
         self.health.structure = fit.label()
         self.health.structure_scores = {', '.join(map(str, k)): round(v, 4)
@@ -84,6 +91,22 @@ class StructureMixin:
                                                            key=lambda kv: kv[1])[:6]}
         if self._buf is not None:
             self._buf.retarget(fit.train_correction)
+
+    #: a correction may make no learned target larger than this times the largest residual
+    CORRECTION_INFLATION = 1.25
+
+    def _inflates(self, fit) -> bool:
+        """Tell whether ``fit``'s correction inflates the buffered targets (see _reselect)."""
+        if self._buf is None:
+            return False
+        r, y = self._buf.residuals_unordered()
+        if not len(r):
+            return False
+        t = r - fit.train_correction(y)
+        rmax = np.abs(r).max(axis=0)
+        if self._rmax is not None:
+            rmax = np.maximum(rmax, self._rmax)
+        return bool(np.any(np.abs(t).max(axis=0) > self.CORRECTION_INFLATION * rmax + 1e-12))
 
     #: the structure is re-selected when the history has grown by this factor since the last
     RESELECT_GROWTH = 1.25
@@ -100,10 +123,23 @@ class StructureMixin:
         return dict(hyper, mean=self._param.friction_mean().fit(None, None).to_dict())
 
     def _target(self, r: np.ndarray, yt: Optional[np.ndarray]) -> np.ndarray:
-        """Return the damping target of a residual r (N,) with correction columns yt."""
+        """
+        Return the damping target of a residual r (N,) with correction columns yt.
+
+        A correction fitted on the poses seen so far may extrapolate to a new pose: where it
+        would make the target larger than ``CORRECTION_INFLATION`` x the largest residual
+        learned on that joint, this sample is learned uncorrected (counted) until the next
+        re-selection refits the correction with it.
+        """
+        a = np.abs(r)
+        self._rmax = a if self._rmax is None else np.maximum(self._rmax, a)
         if self._param is None:
             return r
-        return r - self._param.train_correction(None if yt is None else yt[None])[0]
+        t = r - self._param.train_correction(None if yt is None else yt[None])[0]
+        if np.any(np.abs(t) > self.CORRECTION_INFLATION * self._rmax + 1e-12):
+            self.health.corrections_refused += 1
+            return r
+        return t
 
     def _model_kw(self, cfg=None) -> dict:
         """Return the GP's constructor arguments: the configuration's, with the frozen prior."""

@@ -173,3 +173,60 @@ def test_answers_outside_the_learned_velocities_stay_within_what_was_learned():
     assert health.answers_bounded == 2 and list(src) == ['prior'] * 3
     np.testing.assert_allclose(tau[2], prior.diag(far[2:])[0] * far[2])    # inside: as is
     assert np.all(np.einsum('ij,ij->i', far, tau) >= 0.0)
+
+
+def test_the_prior_raises_the_bound_no_further_than_the_data_ever_reached():
+    """
+    The prior raises the answers' bound at most to what the residuals ever reached.
+
+    A prior fitted to the first second of a stream can exceed, inside the learned box, every
+    residual the stream ever had (2.1x on a Panda joint): with ``residual_bound`` known, the
+    answer stays within ``BOUND_FACTOR`` x the larger of the learned force and that bound.
+    """
+    from types import SimpleNamespace
+    from dgp_ros.gp.means import make_mean
+    from dgp_ros.online.answer import answer, BOUND_FACTOR
+    from dgp_ros.online.snapshot import Snapshot
+    rng = np.random.default_rng(4)
+    Q = rng.uniform(-0.5, 0.5, (40, 2))
+    prior = make_mean('viscous', 'full').fit(Q, np.c_[40.0 * Q[:, 0], 2.0 * Q[:, 1]])
+    learned = np.array([1.0, 1.0])              # what the targets and residuals reached
+    snaps = [Snapshot(version=1, model=None, prior=prior, prior_std=np.zeros(2),
+                      force_bound=learned, learned_through=1.0, frozen=True,
+                      velocity_box=(Q.min(axis=0), Q.max(axis=0)), residual_bound=rb)
+             for rb in (None, learned)]
+    at = np.array([[0.45, 0.0], [-0.45, 0.0], [0.01, 0.01]])
+    out = []
+    for snap in snaps:
+        health = SimpleNamespace(nonfinite_outputs=0, passivity_fallbacks=0, answers_bounded=0)
+        out.append(answer(snap, at, False, False, 'projected', health, lambda m: None)[0])
+    assert np.abs(out[0][:2, 0]).min() > 10.0           # without it: the prior's 18 N m
+    assert np.all(np.abs(out[1]) <= BOUND_FACTOR * learned * (1 + 1e-12)), out[1]
+    assert np.abs(out[1][:2, 0]).min() == pytest.approx(BOUND_FACTOR * 1.0)
+    np.testing.assert_allclose(out[1][2], out[0][2])   # small answers untouched
+    assert np.all(np.einsum('ij,ij->i', at, out[1]) >= 0.0)
+
+
+def test_a_correction_that_would_inflate_a_target_is_not_applied_to_it():
+    """
+    A sample whose corrected target would be inflated is learned uncorrected, and counted.
+
+    The conservative correction fitted on the poses seen so far may extrapolate to a new pose
+    (targets of 13 N m where the residual spans 2.6); a correction within
+    ``CORRECTION_INFLATION`` x the largest residual is applied.
+    """
+    from types import SimpleNamespace
+    from dgp_ros.online.learner import Learner
+    lr = Learner(EstimatorConfig(refit_mode='sync'))
+    for r in ([2.0, -1.0], [-1.5, 0.5]):              # largest |residual|: 2.0 and 1.0
+        np.testing.assert_array_equal(lr._target(np.array(r), None), r)
+    corr = np.array([0.5, 0.0])
+    lr._param = SimpleNamespace(train_correction=lambda Y: np.broadcast_to(corr, (1, 2)))
+    np.testing.assert_allclose(lr._target(np.array([1.0, 0.2]), None), [0.5, 0.2])
+    assert lr.health.corrections_refused == 0
+    corr[:] = [-4.0, 0.0]                                 # 1.0 + 4.0 > 1.25 x 2.0
+    np.testing.assert_array_equal(lr._target(np.array([1.0, 0.2]), None), [1.0, 0.2])
+    assert lr.health.corrections_refused == 1
+    corr[:] = [0.0, 0.2]                                  # -1.0 - 0.2 within 1.25 x 1.0
+    np.testing.assert_allclose(lr._target(np.array([0.0, -1.0]), None), [0.0, -1.2])
+    assert lr.health.corrections_refused == 1
