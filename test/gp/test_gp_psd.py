@@ -68,8 +68,12 @@ def test_seven_joints_are_psd_everywhere_and_unchanged_where_they_were(cls, tmp_
     m = cls(passivity='certified', hyperparams=base.hyperparams_).fit(Q, T, optimize=False)
     c = m.certificate()
     assert c.certified and c.method == 'psd-clip' and c.guarantee == 'psd' and c.domain is None
-    assert 0 < c.details['touched_fraction_of_samples'] < 1
     delta = c.details['delta']
+    # touched: exactly the training samples where the fit's D was below the floor (none on
+    # some BLAS builds: the optimized hyper-parameters differ by machine)
+    below = _sym_min_eig(base.damping_matrix(Q)) < delta
+    assert c.details['touched_fraction_of_samples'] == pytest.approx(np.mean(below))
+    assert np.mean(below) < 1
     rng = np.random.default_rng(0)
     inside = rng.uniform(-1, 1, (10_000, 7))
     outside = rng.uniform(-10, 10, (10_000, 7))
