@@ -1,13 +1,15 @@
 #!/usr/bin/env python3
 """
-The processes of bench/arm_live.py, one role each: player, listener, estimator, hog.
+The processes of bench/arm_live.py, one role each: player, listener, prober, estimator, hog.
 
 * ``player``: a simulated Panda's raw /joint_states (7 joints and a finger joint, like a driver)
   published at absolute deadlines in phases ``RATE:SECONDS,...``; each phase samples the
   trajectory at its own rate, and every stamp is the message's deadline on the wall clock (the
   answers' age is then wall time minus stamp). ``frame_id`` is the sequence number.
 * ``listener``: receives the measurements and the answers (raw CDR; stamps and the answers'
-  effort deserialized after the run) and /diagnostics; optionally probes services under the stream:
+  effort deserialized after the run) and /diagnostics. ``prober``: the same without the streams,
+  probing services under the stream from a process that has nothing else to do (a client's first
+  call, which also waits for DDS to match its reply reader, is saved apart as ``first``):
   ``/dgp_estimator/get_parameters`` (served by the executor alone) and ``~/refit`` (served by
   the learner). It uses the node's own wait-set executor (``dgp_ros.executor``) with batch
   handlers, about 30 us of Python per message, so that it is not the bottleneck it would be with
@@ -136,9 +138,10 @@ def listener(a) -> None:
     from dgp_ros.executor import set_batch_handler, WaitSetExecutor
     ctx = rclpy.Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('arm_live_listener', context=ctx)
+    node = rclpy.create_node(f'arm_live_{a.role}', context=ctx)
     meas, ans, raws, diags = [], [], [], []
     probes = {'get_parameters': [], 'refit': []}
+    first = {}
     now = time.time
 
     def on_meas(msgs, infos):
@@ -160,13 +163,16 @@ def listener(a) -> None:
                 d['t'] = t
                 diags.append(d)
 
-    qos_be = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
-    s_in = node.create_subscription(JointState, TOPIC_IN, lambda m: None, qos_be, raw=True)
-    set_batch_handler(s_in, on_meas, 1000)
-    s_out = node.create_subscription(JointState, TOPIC_OUT, lambda m: None,
-                                     QoSProfile(depth=1000), raw=True)
-    set_batch_handler(s_out, on_ans, 1000)
-    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
+    if a.role == 'listener':
+        # the prober (the same role without the streams) calls the services from a process
+        # that has nothing else to do: a round trip is then the node's, not a busy caller's
+        qos_be = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+        s_in = node.create_subscription(JointState, TOPIC_IN, lambda m: None, qos_be, raw=True)
+        set_batch_handler(s_in, on_meas, 1000)
+        s_out = node.create_subscription(JointState, TOPIC_OUT, lambda m: None,
+                                         QoSProfile(depth=1000), raw=True)
+        set_batch_handler(s_out, on_ans, 1000)
+        node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
     clients = {}
     if a.probe_period > 0:
         clients['get_parameters'] = (node.create_client(GetParameters,
@@ -195,7 +201,10 @@ def listener(a) -> None:
         ex.spin_once(timeout_sec=0.02)
         for kind, (fut, t0) in list(pending.items()):
             if fut.done():
-                probes[kind].append((now(), time.monotonic() - t0))
+                # a client's first call also waits for DDS to match its reply reader with the
+                # service (0.75 s once): kept apart
+                (probes[kind] if kind in first else first.setdefault(kind, [])).append(
+                    (now(), time.monotonic() - t0))
                 del pending[kind]
     for kind, (fut, t0) in pending.items():          # unanswered (in flight at the end: not)
         if time.monotonic() - t0 > 1.0:
@@ -205,7 +214,7 @@ def listener(a) -> None:
         else np.zeros((0, 0))
     np.savez(a.out, meas=np.array(meas, dtype=float).reshape(-1, 2),
              ans=np.array(ans, dtype=float).reshape(-1, 2), effort=efforts,
-             diags=json.dumps(diags), probes=json.dumps(probes))
+             diags=json.dumps(diags), probes=json.dumps(probes), first=json.dumps(first))
     ex.shutdown()
     node.destroy_node()
     ctx.try_shutdown()
@@ -311,7 +320,7 @@ def hog(a) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    p.add_argument('role', choices=['player', 'listener', 'estimator', 'hog'])
+    p.add_argument('role', choices=['player', 'listener', 'prober', 'estimator', 'hog'])
     p.add_argument('--out', default='')
     p.add_argument('--ready', default='')
     p.add_argument('--phases', default='1000:20')
@@ -329,7 +338,7 @@ def main() -> int:
     a = p.parse_args(argv)
     if a.role == 'player':
         player(a)
-    elif a.role == 'listener':
+    elif a.role in ('listener', 'prober'):
         listener(a)
     elif a.role == 'estimator':
         return estimator(a, ros)

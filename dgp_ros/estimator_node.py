@@ -407,14 +407,29 @@ class EstimatorNode(Node):
         if not isinstance(self.executor, WaitSetExecutor):    # rclpy's: the answer, now
             response.success, response.message = self.estimator.request_refit()
             return response
-        # the learner's reply answers it later: the message path does not wait for the learner
+        # the learner's reply answers it later: the message path does not wait for the learner;
+        # a learner busy for longer than REFIT_REPLY_S (a child at lower priority under a
+        # flood took 170-630 ms) gets the request queued, and the caller an answer saying so
         later = DeferredResponse()
 
         def done(result):
             response.success, response.message = result
             later.send(response)
+
+        def busy():
+            timer.cancel()
+            self.destroy_timer(timer)
+            queued = type(response)()       # not the learner's: that one may be on its way
+            queued.success = True
+            queued.message = ('refit requested: the learner is busy and will take it up; '
+                              '/diagnostics reports it (refits_started, last_refit_error)')
+            later.send(queued)
+        timer = self.create_timer(self.REFIT_REPLY_S, busy)
         self.estimator.request_refit_async(done)
         return later
+
+    #: longest wait for the learner's reply to ~/refit before answering that it is queued [s]
+    REFIT_REPLY_S = 0.02
 
     def _srv_reset(self, request, response):
         self.estimator.reset()

@@ -278,6 +278,7 @@ class WaitSetExecutor:
         for w in events:
             if w.is_ready(ws):
                 self._run_waitable(w)
+        self._flush_outbox()            # what a timer or a reply just answered: before a batch
         for (s, batch, message_only), i in zip(self._subs, i_subs):
             if ready('subscription', i):
                 if batch is None:

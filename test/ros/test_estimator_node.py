@@ -15,6 +15,7 @@ from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from dgp_ros.estimator_node import EstimatorNode  # noqa: E402
+from dgp_ros.executor import WaitSetExecutor  # noqa: E402
 from dgp_ros.node_runtime import _executor  # noqa: E402
 from dgp_ros.online import EstimatorConfig  # noqa: E402
 
@@ -209,7 +210,23 @@ def test_bad_messages_rejected_and_reported(rig):
     assert len(rig.got['force']) == 1
 
 
-def test_services(rig, tmp_path):
+def test_refit_is_answered_while_the_learner_is_busy(rig):
+    """A learner that does not reply in ``REFIT_REPLY_S``: ~/refit says the request is queued."""
+    est = rig.start_estimator(FAST)
+    if not isinstance(est.executor, WaitSetExecutor):
+        pytest.skip('rclpy executors answer ~/refit in line (DGP_EXECUTOR)')
+    asked = []
+    est.estimator.request_refit_async = asked.append      # a learner that never replies
+    r = rig.call('/dgp_estimator/refit', timeout=10.0)
+    assert r.success and 'busy' in r.message and len(asked) == 1, r.message
+    asked[0]((False, 'late reply'))                        # ignored: already answered
+    r = rig.call('/dgp_estimator/refit', timeout=10.0)
+    assert r.success and 'busy' in r.message and len(asked) == 2, r.message
+
+
+def test_services(rig, tmp_path, monkeypatch):
+    # the learner's own replies (a loaded machine may take longer than REFIT_REPLY_S)
+    monkeypatch.setattr(EstimatorNode, 'REFIT_REPLY_S', 30.0)
     path = str(tmp_path / 'model.npz')
     est = rig.start_estimator(FAST)
     r = rig.call('/dgp_estimator/refit')
