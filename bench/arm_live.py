@@ -769,9 +769,16 @@ def targets(by: dict, held: Optional[dict]) -> list:
     s = by.get('learn_all')
     if s:
         r = s[0]
-        learned = int(r['sum']['diag'].get('samples_added', 0) or 0) / r['seconds']
+        d = r['sum']['diag']
+        learned = int(d.get('samples_added', 0) or 0) / r['seconds']
+        queued = int(d.get('samples_pending', 0) or 0)
+        # a 1 kHz stream is the ceiling: kept up = (almost) all of it learned, nothing queued
+        # (the first residual trails its message by the filter's half window, 0.05 s)
         out.append(['every message learned at buffer 500: >= 1000 msg/s end to end',
-                    _gate(learned >= 990), f'{learned:.0f} msg/s learned at a 1 kHz stream'])
+                    _gate(learned >= 990 and queued < 100),
+                    f'{learned:.0f} msg/s learned of a 1 kHz stream, {queued} still queued for '
+                    'the learner at the end (the learner carries the cost; the message path '
+                    'only pushes a row into the ring)'])
     if held:
         import robot_arms
         trio = zip(held['nmse'], held['nmse_sigmoid'], held['friction_rms'])

@@ -79,15 +79,19 @@ class _Stats:
 
     def add_rows(self, At: np.ndarray, Ad: np.ndarray, y: np.ndarray) -> None:
         """Add k samples: At, Ad (k, N, L), y (k, N)."""
-        self.Gt += np.einsum('knl,knm->nlm', At, At)
-        self.bt += np.einsum('knl,kn->nl', At, y)
+        # batched matrix products per joint (BLAS): einsum's loops took 7 ms per 64 rows
+        y3 = y.T[:, :, None]                                  # (N, k, 1)
+        AtT = At.transpose(1, 2, 0)                           # (N, L, k)
+        self.Gt += AtT @ At.transpose(1, 0, 2)
+        self.bt += (AtT @ y3)[..., 0]
         if Ad is At:
             self.Gd, self.bd = self.Gt, self.bt
         else:
             if self.Gd is self.Gt:
                 self.Gd, self.bd = self.Gt.copy(), self.bt.copy()
-            self.Gd += np.einsum('knl,knm->nlm', Ad, Ad)
-            self.bd += np.einsum('knl,kn->nl', Ad, y)
+            AdT = Ad.transpose(1, 2, 0)
+            self.Gd += AdT @ Ad.transpose(1, 0, 2)
+            self.bd += (AdT @ y3)[..., 0]
         self.yy += np.einsum('kn,kn->n', y, y)
         self.sy += y.sum(axis=0)
         self.n += y.shape[0]

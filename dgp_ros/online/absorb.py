@@ -32,6 +32,10 @@ class Absorber:
     MIN_ABSORB_S = 0.02
     #: random probes of the bound check of an absorbed model (besides its training inputs)
     ABSORB_PROBES = 200
+    #: wait after an absorb, in units of its cost: 2 = at most a third of the time absorbing;
+    #: a learner process raises it to BACKLOG_ABSORB_WAIT while samples queue up for it
+    absorb_wait = 2.0
+    BACKLOG_ABSORB_WAIT = 8.0
 
     # ------------------------------------------------------------------ absorbing
     def _absorb_due(self) -> bool:
@@ -40,7 +44,8 @@ class Absorber:
 
         In line (``sync``): every ``absorb_every`` new samples (deterministic, in learning
         order). In a learner process or thread: as soon as the last refit's cost allows (at
-        most a third of the time refitting), so answers follow the data as closely as the
+        most a third of the time refitting; a ninth while samples queue up for the learner:
+        taking every sample in comes first), so answers follow the data as closely as the
         machine affords.
         """
         if self._model is None or not self._fresh:
@@ -48,7 +53,8 @@ class Absorber:
         if self.config.refit_mode == 'sync':
             return self._fresh >= max(1, self.config.buffer_size // self.ABSORB_FRACTION)
         return time.perf_counter() - self._absorbed_at >= max(self.MIN_ABSORB_S,
-                                                              2.0 * self._absorb_cost)
+                                                              self.absorb_wait *
+                                                              self._absorb_cost)
 
     def _absorb_soon(self) -> None:
         """Absorb in line (``sync``), else in the absorber thread (never on the caller's path)."""

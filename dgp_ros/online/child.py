@@ -89,7 +89,12 @@ class LearnerLoop:
         """Learn the samples waiting, for about ``ROUND_S``; True if there were any."""
         if self.ring is None:
             return False
-        rows = self.ring.take(max(1, int(self.ROUND_S / self.row_s)))
+        want = max(1, int(self.ROUND_S / self.row_s))
+        rows = self.ring.take(want)
+        L = self.learner
+        # a full round means more are waiting: absorb less often until the queue is drained
+        L.absorb_wait = L.BACKLOG_ABSORB_WAIT if rows.shape[0] >= want else \
+            type(L).absorb_wait
         if not rows.shape[0]:
             return False
         t0 = time.perf_counter()

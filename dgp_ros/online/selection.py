@@ -56,7 +56,7 @@ class Buffer:
             i = (self._start + self.size) % self.capacity
             self.size += 1
         elif self.policy == 'coverage':
-            i = self._coverage_slot(np.asarray(q, float))
+            i, dn = self._coverage_slot(np.asarray(q, float))
         else:
             i = self._start
             self._start = (self._start + 1) % self.capacity
@@ -64,7 +64,7 @@ class Buffer:
         if extra is not None:
             self._store_extra(i, *extra)
         if self.policy == 'coverage' and self._d is not None:
-            self._update_distances(i)
+            self._update_distances(i, dn)
         elif self.policy == 'coverage' and self.size == self.capacity:
             self._init_distances()
         return i
@@ -88,27 +88,45 @@ class Buffer:
         d = np.sqrt(np.maximum(sq[:, None] + sq[None, :] - 2.0 * Z @ Z.T, 0.0))
         np.fill_diagonal(d, np.inf)
         self._d = d
+        # each row's nearest neighbour, kept up to date by _update_distances (a minimum over
+        # the whole matrix per sample was a quarter of the learner's time at buffer 500)
+        self._nn = np.argmin(d, axis=1)
+        self._near = d[np.arange(len(d)), self._nn]
 
-    def _update_distances(self, i: int) -> None:
-        d = np.sqrt((((self._q - self._q[i]) / self.scale) ** 2).sum(axis=1))
+    def _update_distances(self, i: int, d: np.ndarray) -> None:
+        """Row ``i`` was replaced; ``d`` (capacity,): the new row's distances to the old rows."""
         d[i] = np.inf
         self._d[i], self._d[:, i] = d, d
+        near, nn = self._near, self._nn
+        lost = np.flatnonzero(nn == i)          # their nearest was the row just replaced
+        closer = d < near
+        near[closer], nn[closer] = d[closer], i
+        for j in lost:
+            if not closer[j]:
+                nn[j] = int(np.argmin(self._d[j]))
+                near[j] = self._d[j, nn[j]]
+        nn[i] = int(np.argmin(d))
+        near[i] = d[nn[i]]
 
-    def _coverage_slot(self, q: np.ndarray) -> int:
-        """Return the slot a new row replaces: one of the closest pair (class docstring)."""
+    def _coverage_slot(self, q: np.ndarray) -> tuple:
+        """
+        Return (the slot a new row replaces, the new row's distances to the rows (capacity,)).
+
+        The slot is one of the closest pair (class docstring).
+        """
         d = self._d
-        near = d.min(axis=1)
+        near = self._near
         a = int(np.argmin(near))
-        b = int(np.argmin(d[a]))
+        b = int(self._nn[a])
         # the new row itself may be the closest: then it replaces its nearest neighbour only if
         # that is closer to it than the closest pair is to each other
         dn = np.sqrt((((self._q - q) / self.scale) ** 2).sum(axis=1))
         k = int(np.argmin(dn))
         if dn[k] < near[a]:
-            return k
+            return k, dn
         da = np.partition(d[a], 1)[1]
         db = np.partition(d[b], 1)[1]
-        return a if da < db else b
+        return (a if da < db else b), dn
 
     def retarget(self, correction) -> None:
         """Recompute the targets as residual - ``correction(columns)`` (k, N) for every row."""
@@ -160,8 +178,9 @@ class Selector:
     OUTLIER_Z = 50.0
     OUTLIER_RUN = 10
 
-    #: the robust statistics of the buffer are recomputed after this many additions (medians of
-    #: the whole buffer on every candidate cost more than the rest of the selection)
+    #: the robust statistics of the buffer are recomputed after this many additions, or a
+    #: twentieth of the buffer if more (medians of the whole buffer on every candidate cost
+    #: more than the rest of the selection)
     STATS_EVERY = 16
 
     def __init__(self):
@@ -194,7 +213,8 @@ class Selector:
 
     def _robust_stats(self, buf: Buffer):
         st = self._stats
-        if st is None or self.additions - st[1] >= self.STATS_EVERY or buf.size < st[0] or \
+        every = max(self.STATS_EVERY, buf.capacity // 20)
+        if st is None or self.additions - st[1] >= every or buf.size < st[0] or \
                 buf.size < 2 * self.STATS_EVERY and buf.size != st[0]:
             Q, T = buf.rows_unordered()
             st = (buf.size, self.additions) + self.robust_scale(Q) + self.robust_scale(T)

@@ -121,6 +121,22 @@ def test_coverage_buffer_keeps_the_visited_velocities():
     assert cov.size == 50
 
 
+def test_coverage_buffer_keeps_each_rows_nearest_neighbour_exact():
+    """The incrementally kept nearest distances equal the full matrix's row minima."""
+    rng = np.random.default_rng(5)
+    for n, N in ((30, 2), (120, 7)):
+        b = Buffer(n, N, 'coverage')
+        checked = 0
+        for k in range(6 * n):
+            q = rng.normal(size=N) * (1 + k % 5)
+            b.append(q, q)
+            if b._d is not None:
+                np.testing.assert_array_equal(b._near, b._d.min(axis=1))
+                np.testing.assert_array_equal(b._d[np.arange(n), b._nn], b._near)
+                checked += 1
+        assert checked >= 5 * n
+
+
 @pytest.mark.skipif(not os.path.isfile(os.path.join(PANDA, 'panda_log_train.npz')),
                     reason='the real Panda log (development data) is not present')
 def test_real_panda_selection_beats_friction_alone_held_out():
