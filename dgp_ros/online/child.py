@@ -31,7 +31,7 @@ class LearnerLoop:
     #: longest catch-up before a command that must see the samples sent before it (s)
     DRAIN_S = 0.05
 
-    def __init__(self, cfg: dict, cmd, out, lock, ring_info, init_model, variance: bool,
+    def __init__(self, cfg: dict, cmd, out, lock, ring_info, init, variance: bool,
                  residuals: bool):
         from .process import LearnerProcess
         self.P = LearnerProcess
@@ -46,8 +46,10 @@ class LearnerLoop:
         try:
             config = dataclasses.replace(EstimatorConfig.from_dict(cfg), refit_mode='async')
             self.learner = Learner(config)
-            if init_model is not None:          # newer than the file of the last refit
-                self.learner.adopt(init_model, 'the last snapshot')
+            if init is not None and init.model is not None:   # newer than the last file
+                self.learner.adopt(init.model, 'the last snapshot')
+            if init is not None and init.residual_bound is not None:
+                self.learner.restore_residual_bound(init.residual_bound)
         except Exception as exc:        # noqa: BLE001 - the node reports it and exits 2
             self.learner = None
             self.out.send(('error', f'{exc}'))

@@ -108,8 +108,13 @@ class LearnerProcess:
         self.load_error = info.get('load_error', '')
 
     # ------------------------------------------------------------------ child life cycle
-    def _spawn(self, init_model, wait: bool) -> dict:
-        """Start a child (and its ring when N is known); returns its handshake info."""
+    def _spawn(self, init, wait: bool) -> dict:
+        """
+        Start a child (and its ring when N is known); returns its handshake info.
+
+        init : the last snapshot (a restart: its model and what it learned about the data's
+            range carry over) or None.
+        """
         ctx = _context()
         lock = ctx.Lock()
         ring = None
@@ -120,7 +125,7 @@ class LearnerProcess:
         cfg = dataclasses.asdict(self.config)
         ring_info = None if ring is None else (ring.name, ring.width, ring.capacity)
         proc = ctx.Process(target=_child_main, name='dgp_learner', daemon=True,
-                           args=(cfg, cmd_r, out_w, lock, ring_info, init_model, self.nice,
+                           args=(cfg, cmd_r, out_w, lock, ring_info, init, self.nice,
                                  self._variance, self._want_residuals))
         proc.start()
         cmd_r.close()
@@ -196,7 +201,7 @@ class LearnerProcess:
         while not self._closing:
             try:
                 snap = self._snap
-                self._spawn(None if snap is None else snap.model, wait=True)
+                self._spawn(snap, wait=True)
                 self.restarts += 1
                 return
             except Exception as exc:        # noqa: BLE001 - keep answering; retry in a while
@@ -433,7 +438,7 @@ def _describe_exit(code) -> str:
     return f'exit code {code}'
 
 
-def _child_main(cfg: dict, cmd, out, lock, ring_info, init_model, nice: int, variance: bool,
+def _child_main(cfg: dict, cmd, out, lock, ring_info, init, nice: int, variance: bool,
                 residuals: bool) -> None:
     """Run a Learner on the ring's samples: the child process (module docstring)."""
     # Ctrl-C and a SIGTERM to the process group are the node's to handle: it saves through
@@ -445,4 +450,4 @@ def _child_main(cfg: dict, cmd, out, lock, ring_info, init_model, nice: int, var
     except OSError:
         pass
     from .child import LearnerLoop
-    LearnerLoop(cfg, cmd, out, lock, ring_info, init_model, variance, residuals).run()
+    LearnerLoop(cfg, cmd, out, lock, ring_info, init, variance, residuals).run()

@@ -122,6 +122,13 @@ class StructureMixin:
             return hyper
         return dict(hyper, mean=self._param.friction_mean().fit(None, None).to_dict())
 
+    def restore_residual_bound(self, bound) -> None:
+        """Take the largest |residual| per joint a previous learner saw (a restart), (N,)."""
+        with self._lock:
+            b = np.abs(np.asarray(bound, float))
+            self._rmax = b if self._rmax is None else np.maximum(self._rmax, b)
+            self._snap = None           # the next snapshot carries it
+
     def _target(self, r: np.ndarray, yt: Optional[np.ndarray]) -> np.ndarray:
         """
         Return the damping target of a residual r (N,) with correction columns yt.

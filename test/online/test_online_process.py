@@ -1,0 +1,64 @@
+"""
+The learner in its own process (issue 23): killed, it is restarted and nothing is lost.
+
+A SIGKILL to the learner process: the message path keeps answering from the last snapshot
+(every message answered, passive), the receiver restarts the learner from that snapshot, the
+restart is counted, and what the learner knew about the data's range (``residual_bound``, the
+cap of the answers' bound) carries over. No timing is asserted: bench/arm_live.py --kill
+reports the silences and the time back.
+"""
+import os
+import signal
+import time
+
+import numpy as np
+
+from dgp_ros.online import EstimatorConfig, OnlineEstimator
+
+NAMES = ['a', 'b', 'c']
+
+
+def _feed(est, rng, t, n):
+    out = []
+    for i in range(n):
+        q = rng.uniform(-1.0, 1.0, 3)
+        out.append(est.process(t + 0.01 * i, NAMES, q, 2.0 * q + 0.3 * np.tanh(q / 0.05)))
+        time.sleep(0.001)
+    return out, t + 0.01 * n
+
+
+def test_a_killed_learner_is_restarted_from_the_last_snapshot_and_answers_never_stop():
+    cfg = EstimatorConfig(buffer_size=40, min_samples=10, refit_period_s=0.0, selection='all',
+                          prior='viscous', bias=False, refit_mode='process')
+    est = OnlineEstimator(cfg)
+    rng = np.random.default_rng(0)
+    t = 0.0
+    try:
+        end = time.monotonic() + 60
+        while not est.trained and time.monotonic() < end:
+            _, t = _feed(est, rng, t, 20)
+        assert est.trained
+        proc = est._learner._proc
+        snap0 = est._learner.snapshot()
+        assert snap0.residual_bound is not None
+        os.kill(proc.pid, signal.SIGKILL)
+        answers = []
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            got, t = _feed(est, rng, t, 20)
+            answers += got
+            L = est._learner
+            if L.restarts >= 1 and L._proc is not proc and L._proc.is_alive():
+                break
+        L = est._learner
+        assert L.restarts == 1 and L._proc.is_alive(), est.diagnostics()
+        assert all(a is not None for a in answers)
+        assert all(a.power >= 0.0 for a in answers)
+        got, t = _feed(est, rng, t, 50)            # the new learner learns and answers
+        assert all(a is not None and a.source == 'model' for a in got)
+        snap = L.snapshot()
+        assert np.all(snap.residual_bound >= snap0.residual_bound)
+        d = est.diagnostics()
+        assert d['learner_restarts'] == 1 and 'died' in d['message'], d['message']
+    finally:
+        est.close()
