@@ -32,6 +32,7 @@ class JobRunner:
     #: model's by this factor (plus 1 % of their variance) is not swapped in
     HELD_OUT_FACTOR = 3.0
     #: rejected candidates retried on fresh data before waiting for the next refit period
+    #: (without any model: always, each retry waiting twice as many samples, up to 64 x)
     MAX_RETRIES = 3
 
     # ------------------------------------------------------------------ decisions
@@ -171,12 +172,14 @@ class JobRunner:
                 h.refits_rejected += 1
             if ok:
                 self._retry_at = None
-            elif why.startswith('sanity check') and \
-                    h.consecutive_refit_failures < self.MAX_RETRIES:
-                # a rejected candidate is retried once fresh samples arrived (it learns from the
-                # ones it failed on), not only at the next refit period; a short bag, or
-                # refit_period_s = 0, would otherwise keep the first model for good
-                self._retry_at = self._seq + max(10, cfg.buffer_size // 4)
+            elif self._model is None or h.consecutive_refit_failures < self.MAX_RETRIES:
+                # a rejected or unproven candidate is retried once fresh samples arrived (it
+                # learns from the ones it failed on), not only at the next refit period; a
+                # short bag, or refit_period_s = 0, would otherwise keep the first model (or,
+                # before any, the prior: a Full D-GP's first proof failed on 3 of 120 small
+                # fits) for good
+                self._retry_at = self._seq + max(10, cfg.buffer_size // 4) * \
+                    2 ** min(h.consecutive_refit_failures, 6)          # backing off
             h.refit_done(ok, dt, job.stamp, job.optimize,
                          '' if ok else (why if model is None else f'not swapped in: {why}'),
                          time.time())

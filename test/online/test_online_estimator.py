@@ -538,3 +538,30 @@ def test_a_rejected_candidate_is_retried_on_fresh_samples_without_a_refit_period
     d = est.diagnostics()
     assert _WildOnce.fits == 3 and d['hyper_samples'] == 30 and d['refits_ok'] == 2, d
     assert 'model rejected' not in d['message'] and d['consecutive_refit_failures'] == 0
+
+
+class _UnprovenFirst(FullDGP):
+    """The first fit ever made cannot be proven (as 3 of 120 small certified fits were)."""
+
+    fits = 0
+
+    def fit(self, Qd, Tau, optimize=True):
+        type(self).fits += 1
+        if type(self).fits == 1:
+            raise RuntimeError('no proof: box budget exhausted')
+        return super().fit(Qd, Tau, optimize)
+
+
+def test_a_first_fit_that_fails_is_retried_without_a_refit_period():
+    """refit_period_s = 0, no model yet: a failed first fit must not leave the prior for good."""
+    _UnprovenFirst.fits = 0
+    est = OnlineEstimator(cfg(buffer_size=40, min_samples=10, refit_period_s=0.0),
+                          model_factory=lambda kind, **kw: _UnprovenFirst(**kw))
+    feed(est, 10)
+    d = est.diagnostics()
+    assert est.model is None and _UnprovenFirst.fits == 1 and d['refits_failed'] == 1, d
+    feed(est, 9, t0=1.0, seed=1)                  # the retry waits for 10 fresh samples
+    assert est.model is None and _UnprovenFirst.fits == 1
+    out = feed(est, 1, t0=2.0, seed=2)
+    assert est.model is not None and _UnprovenFirst.fits == 2
+    assert out[-1].source == 'model' and est.diagnostics()['consecutive_refit_failures'] == 0

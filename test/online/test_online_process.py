@@ -37,7 +37,7 @@ def test_a_killed_learner_is_restarted_from_the_last_snapshot_and_answers_never_
         end = time.monotonic() + 60
         while not est.trained and time.monotonic() < end:
             _, t = _feed(est, rng, t, 20)
-        assert est.trained
+        assert est.trained, str(est.diagnostics())
         proc = est._learner._proc
         snap0 = est._learner.snapshot()
         assert snap0.residual_bound is not None
