@@ -20,10 +20,12 @@ from dgp_ros.gp import passive_tolerance
 from .plan import PlanCache
 from .snapshot import Snapshot
 
-__all__ = ['answer', 'Estimate', 'BOUND_FACTOR']
+__all__ = ['answer', 'Estimate', 'BOUND_FACTOR', 'RESIDUAL_FACTOR']
 
 #: answers are bounded by this factor times the largest force learned per joint
 BOUND_FACTOR = 1.5
+#: and, where known, by this factor times the largest residual learned (before corrections)
+RESIDUAL_FACTOR = 1.8
 
 
 @dataclass
@@ -155,6 +157,10 @@ def _bound(snap: Snapshot, Q, tau, D, health):
     Also before the first fit: the answers are then the prior's.
     """
     limit = BOUND_FACTOR * np.maximum(snap.force_bound, 1e-12)
+    if snap.residual_bound is not None:
+        # targets a correction enlarged (up to CORRECTION_INFLATION x the residual) do not
+        # carry the answers further than RESIDUAL_FACTOR x the largest residual learned
+        limit = np.minimum(limit, RESIDUAL_FACTOR * np.maximum(snap.residual_bound, 1e-12))
     worst = (np.abs(tau) / limit).max(axis=1)
     big = worst > 1.0
     if snap.prior is not None and big.any():

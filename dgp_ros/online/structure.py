@@ -93,7 +93,7 @@ class StructureMixin:
             self._buf.retarget(fit.train_correction)
 
     #: a correction may make no learned target larger than this times the largest residual
-    CORRECTION_INFLATION = 1.25
+    CORRECTION_INFLATION = 1.5
 
     def _inflates(self, fit) -> bool:
         """Tell whether ``fit``'s correction inflates the buffered targets (see _reselect)."""
@@ -102,11 +102,14 @@ class StructureMixin:
         r, y = self._buf.residuals_unordered()
         if not len(r):
             return False
-        t = r - fit.train_correction(y)
         rmax = np.abs(r).max(axis=0)
         if self._rmax is not None:
             rmax = np.maximum(rmax, self._rmax)
-        return bool(np.any(np.abs(t).max(axis=0) > self.CORRECTION_INFLATION * rmax + 1e-12))
+        return self._inflated(r - fit.train_correction(y), rmax)
+
+    def _inflated(self, t: np.ndarray, rmax: np.ndarray) -> bool:
+        """Tell whether any target in t (..., N) exceeds the inflation limit of rmax (N,)."""
+        return bool(np.any(np.abs(t) > self.CORRECTION_INFLATION * rmax + 1e-12))
 
     #: the structure is re-selected when the history has grown by this factor since the last
     RESELECT_GROWTH = 1.25
@@ -143,7 +146,7 @@ class StructureMixin:
         if self._param is None:
             return r
         t = r - self._param.train_correction(None if yt is None else yt[None])[0]
-        if np.any(np.abs(t) > self.CORRECTION_INFLATION * self._rmax + 1e-12):
+        if self._inflated(t, self._rmax):
             self.health.corrections_refused += 1
             return r
         return t

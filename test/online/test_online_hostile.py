@@ -230,3 +230,23 @@ def test_a_correction_that_would_inflate_a_target_is_not_applied_to_it():
     corr[:] = [0.0, 0.2]                                  # -1.0 - 0.2 within 1.25 x 1.0
     np.testing.assert_allclose(lr._target(np.array([0.0, -1.0]), None), [0.0, -1.2])
     assert lr.health.corrections_refused == 1
+
+
+def test_answers_stay_within_a_factor_of_the_largest_residual_learned():
+    """Targets a correction enlarged do not carry the answers beyond RESIDUAL_FACTOR x it."""
+    from types import SimpleNamespace
+    from dgp_ros.online.answer import _bound, BOUND_FACTOR, RESIDUAL_FACTOR
+    from dgp_ros.online.snapshot import Snapshot
+    at = np.array([[0.5, 0.5], [0.01, 0.01]])
+    tau_wild = np.array([[4.0, 0.5], [0.02, 0.01]])       # what a model would answer
+    outs = []
+    for rb in (None, np.array([1.0, 1.0])):
+        snap = Snapshot(version=1, model=None, prior=None, prior_std=np.zeros(2),
+                        force_bound=np.array([2.0, 1.0]), learned_through=1.0, frozen=True,
+                        velocity_box=(-np.ones(2), np.ones(2)), residual_bound=rb)
+        health = SimpleNamespace(answers_bounded=0)
+        outs.append(_bound(snap, at, tau_wild.copy(), None, health)[0])
+    assert outs[0][0, 0] == pytest.approx(BOUND_FACTOR * 2.0)      # 1.5 x the targets' 2.0
+    assert outs[1][0, 0] == pytest.approx(RESIDUAL_FACTOR * 1.0)   # 1.8 x the residual's 1.0
+    np.testing.assert_allclose(outs[1][1], tau_wild[1])             # small ones untouched
+    assert np.all(np.abs(outs[1]) <= RESIDUAL_FACTOR * 1.0 + 1e-12)
