@@ -154,7 +154,9 @@ def _bound(snap: Snapshot, Q, tau, D, health):
     (``velocity_box``: the query clipped into it): a prior fitted to a few samples may
     extrapolate to many times the data (7.9x the residual's range on a Panda joint 3 s into a
     1 kHz stream), and an answer stays within what was learned until data reach that region.
-    Also before the first fit: the answers are then the prior's.
+    Also before the first fit: the answers are then the prior's. Where the learner knows the
+    largest residual it learned (``residual_bound``), the prior raises the limit at most to
+    ``BOUND_FACTOR`` x it, and no answer goes beyond ``RESIDUAL_FACTOR`` x it.
     """
     limit = BOUND_FACTOR * np.maximum(snap.force_bound, 1e-12)
     if snap.residual_bound is not None:
