@@ -249,18 +249,18 @@ class WindowCholesky:
         n, cap = self._n, self._cap
         return self._buf[self._r0:self._r0 + n * (cap + 1):cap + 1][:n]
 
-    def _make_room(self, column: bool = True) -> None:
+    def _make_room(self, column: bool = True, k: int = 1) -> None:
         """
-        Ensure row r0 + n exists, and column n with ``column``.
+        Ensure rows r0 + n .. r0 + n + k - 1 exist, and columns n .. n + k - 1 with ``column``.
 
-        The column is for one more sample; a drop only needs the row, for z. Move the block to row
-        0, or grow the buffer.
+        The columns are for k more samples; a drop only needs the row, for z. Move the block to
+        row 0, or grow the buffer.
         """
         n = self._n
-        if self._r0 + n + 1 <= self._cap and (n + 1 <= self._cols or not column):
+        if self._r0 + n + k <= self._cap and (n + k <= self._cols or not column):
             return
         block = self._view(n)[:n, :].copy(order='F')
-        need = n + 1
+        need = n + k
         if (column and need > self._cols) or need > self._cap - self._slack // 2:   # grow
             cols = max(need + self._slack, int(1.5 * self._cols))
             if self._limit is not None:
@@ -334,6 +334,43 @@ class WindowCholesky:
         row[n] = lnn
         self._z = np.append(self._z, (r_new - float(l_row @ self._z)) / lnn)
         self._n = n + 1
+
+    def append_block(self, C: np.ndarray, Dkk: np.ndarray, floor: float,
+                     r_new: np.ndarray) -> None:
+        """
+        Add k samples at once: one triangular solve with k right-hand sides.
+
+        ``C`` (n, k) their kernel columns against the current samples, ``Dkk`` (k, k) their
+        kernel among themselves (noise and jitter on the diagonal), ``r_new`` (k,) their
+        right-hand-side entries. The new rows are ``[L21 | L22]`` with ``L21 = (L^-1 C)^T`` and
+        ``L22`` the Cholesky factor of the Schur complement ``Dkk - L21 L21^T`` (at least
+        ``floor I`` exactly); if rounding makes it indefinite (near-duplicate samples), the
+        samples are appended one by one, each clamped as ``append`` does.
+        """
+        C = np.asarray(C, dtype=float)
+        r_new = np.asarray(r_new, dtype=float)
+        k = C.shape[1]
+        if k == 1:
+            self.append(C[:, 0], float(Dkk[0, 0]), floor, float(r_new[0]))
+            return
+        L21t = self.solve(C)                        # (n, k)
+        S = np.array(Dkk, dtype=float) - L21t.T @ L21t
+        L22, info = dpotrf(S, lower=1, clean=1, overwrite_a=1)
+        if info != 0 or not np.all(np.diag(L22) >= math.sqrt(floor) * (1.0 - 1e-12)):
+            for j in range(k):                      # one by one: each Schur term clamped
+                c = np.concatenate([C[:, j], Dkk[:j, j]]) if j else C[:, j]
+                self.append(c, float(Dkk[j, j]), floor, float(r_new[j]))
+            return
+        self._make_room(k=k)
+        n = self._n
+        rows = self._view(n + k)[n:n + k, :]        # rows r0 + n .. r0 + n + k - 1
+        rows[:, :n] = L21t.T
+        rows[:, n:n + k] = L22
+        zk, info = dtrtrs(L22, r_new - L21t.T @ self._z, lower=1)
+        if info != 0:
+            raise LinAlgError(f'triangular solve failed (info={info}): singular factor')
+        self._z = np.concatenate([self._z, zk])
+        self._n = n + k
 
     def drop_first(self) -> None:
         """

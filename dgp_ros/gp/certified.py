@@ -147,6 +147,27 @@ class CertifiedPolicy(PassivityPolicy):
         self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
         return post
 
+    def defer(self, post):
+        """
+        Establish the cheap certificates only: the global bound, else the eigenvalue floor.
+
+        Up to ``JOINT_MAX_N`` velocities the domain proof is left pending (stale: every answer
+        projected) on the domain of the new data for ``recertify``.
+        """
+        t0 = time.perf_counter()
+        self.data_box = _box_of(post.Qd)
+        self.domain = self._candidate_domains()[0]
+        self.scale, self.leaves, self.blend_on, self.clip = 1.0, None, False, False
+        if not self._global(post, rkhs=True):
+            if post.N > self.JOINT_MAX_N:
+                self._clip_on(post, diagnostics=False)
+            else:
+                self.cert = Certificate(False, float('nan'), 'projection', None, self.scale,
+                                        {'note': 'proof pending: every answer is projected'},
+                                        stale=True, guarantee='pointwise')
+        self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
+        return post
+
     def _global(self, post, rkhs: bool) -> bool:
         """Certificate (1); True when it holds (then nothing is blended or clipped)."""
         m = norm_margin(post.mean.diag_inf(), self.scale * post.l1_bound(rkhs=rkhs))
@@ -179,7 +200,9 @@ class CertifiedPolicy(PassivityPolicy):
         Check the O(n) global bound.
 
         Else: above ``JOINT_MAX_N`` the eigenvalue floor (valid for any weights); up to it, grow
-        the domain to the data and mark the certificate stale (answers projected).
+        the domain to the data and mark the certificate stale: the answers are then those of the
+        ``projected`` mode (the posterior itself, every answer projected; no blend and no repair
+        of the last proof, which were made for other weights) until ``recertify`` proves again.
         """
         t0 = time.perf_counter()
         if self._global(post, rkhs=False):
@@ -196,6 +219,7 @@ class CertifiedPolicy(PassivityPolicy):
                 self.leaves = None
             if not self.cert.stale:
                 self.cert = self.cert.made_stale()
+            post.set_delta(None)
             return
         self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
 
@@ -351,10 +375,11 @@ class CertifiedPolicy(PassivityPolicy):
         Return the correction weight.
 
         ``s * w(q)``: the correction scale times the C2 smootherstep blend that is 1 on the
-        verified box and 0 outside the outer box (only while a domain certificate is in use);
-        None (1) otherwise.
+        verified box and 0 outside the outer box (only while a domain certificate holds: a stale
+        one guarantees nothing beyond the projection of each answer); None (1) otherwise.
         """
-        if self.blend_on and self.domain is not None:
+        if self.blend_on and self.domain is not None and not (self.cert is not None and
+                                                              self.cert.stale):
             return self.scale * _blend(Q, self.domain)
         return None if self.scale == 1.0 else np.full(Q.shape[0], self.scale)
 

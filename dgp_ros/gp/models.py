@@ -149,7 +149,7 @@ class _DGP:
                              int(self.max_boxes), od, pw)
 
     # ------------------------------------------------------------------ fitting
-    def fit(self, Qd, Tau, optimize: bool = True) -> '_DGP':
+    def fit(self, Qd, Tau, optimize: bool = True, prove: bool = True) -> '_DGP':
         """
         Fit to samples Qd, Tau (n, N).
 
@@ -161,6 +161,10 @@ class _DGP:
         optimize=False: keeps everything the model has (from an earlier fit or ``hyperparams``);
         a model without any estimates prior and scales from the data and keeps the default
         kernel.
+        prove=False: a certifying mode establishes only its cheap certificates (the global bound,
+        the eigenvalue floor); a domain proof is left pending (``certificate().stale``, every
+        answer projected meanwhile) for ``recertify``: the online learner's rebases do this, so
+        that no proof holds up learning.
         """
         t0 = time.perf_counter()
         Qd, Tau = as_pair(Qd, Tau)
@@ -197,7 +201,7 @@ class _DGP:
         post = Posterior(structure, hp, mean, Qd, Tau,
                          None if self.window is None else int(self.window),
                          keep_rkhs=policy.needs_rkhs)
-        self.posterior_ = policy.enforce(post)
+        self.posterior_ = policy.enforce(post) if prove else policy.defer(post)
         self.policy_ = policy
         self.fit_info_ = dict(info, fit_seconds=time.perf_counter() - t0)
         return self

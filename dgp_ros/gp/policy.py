@@ -186,6 +186,10 @@ class PassivityPolicy:
         """After a fit: establish the guarantee; may return a refactorized posterior."""
         raise NotImplementedError  # pragma: no cover
 
+    def defer(self, post):
+        """After a fit whose expensive proof is left to ``recertify`` (the cheap ones here)."""
+        return self.enforce(post)
+
     def after_update(self, post, Q_new: np.ndarray) -> None:
         """After ``update``: a cheap re-check (never a branch-and-bound)."""
         self.enforce(post)

@@ -312,37 +312,36 @@ class Posterior:
     # ------------------------------------------------------------------ update
     def update(self, Qd: np.ndarray, Tau: np.ndarray) -> None:
         """
-        Append samples (k, N) in place.
+        Append k samples (k, N) in place.
 
-        O(n^2) per sample and output; beyond ``window`` the oldest sample is dropped by a rank-one
-        update of each factor.
+        One kernel block and one triangular solve with k right-hand sides per output
+        (``WindowCholesky.append_block``): O(n^2 k) per output. Beyond ``window`` the oldest
+        samples are dropped, each by a rank-one update of every factor.
         """
-        s, hp = self.structure, self.hyper
-        sn2 = np.exp(hp.log_sn2)
-        ls, sf2 = np.exp(hp.log_ls), np.exp(hp.log_sf2)
         if not self.live:
             raise RuntimeError("a model snapshot is predict-only: update the learner's model")
-        R_new = (Tau - self.mean(Qd)) / hp.sy
-        for q, r in zip(Qd, R_new):
-            x = (q / hp.sx)[None, :]
-            # every element's kernel column in one pass (exact differences; one new sample)
-            Kel = se_ard(x, self.X, ls, sf2) if s.E > 1 else None
-            for m in range(s.N):
-                c = s.output_kernel(m, x, self.X, hp.log_ls, hp.log_sf2, Kel)[0]
-                floor = sn2[m] + self.jitter[m]
-                self.factors[m].append(c, s.output_kdiag(m, x, hp.log_sf2)[0] + floor, floor,
-                                       r[m])
-            self.X = np.vstack([self.X, x])
-            self.R = np.vstack([self.R, r[None, :]])
+        s, hp = self.structure, self.hyper
+        sn2 = np.exp(hp.log_sn2)
+        x, r = Qd / hp.sx, (Tau - self.mean(Qd)) / hp.sy
+        Xk = np.vstack([self.X, x])
+        Kel = se_ard(x, Xk, np.exp(hp.log_ls), np.exp(hp.log_sf2)) if s.E > 1 else None
+        n, k = self.X.shape[0], x.shape[0]
+        for m in range(s.N):
+            c = s.output_kernel(m, x, Xk, hp.log_ls, hp.log_sf2, Kel)      # (k, n + k)
+            floor = sn2[m] + self.jitter[m]
+            self.factors[m].append_block(c[:, :n].T, c[:, n:] + floor * np.eye(k), floor,
+                                         r[:, m])
+        self.X, self.R = Xk, np.vstack([self.R, r])
+        if self.delta is not None:
+            self.delta = np.vstack([self.delta, np.zeros((k, s.N))])
+        drop = 0 if self.window is None else max(0, self.X.shape[0] - self.window)
+        for _ in range(drop):
+            for f in self.factors:
+                f.drop_first()
+        if drop:
+            self.X, self.R = self.X[drop:], self.R[drop:]
             if self.delta is not None:
-                self.delta = np.vstack([self.delta, np.zeros((1, s.N))])
-            if self.window is not None and self.X.shape[0] > self.window:
-                for f in self.factors:
-                    f.drop_first()
-                self.X = self.X[1:]
-                self.R = self.R[1:]
-                if self.delta is not None:
-                    self.delta = self.delta[1:]
+                self.delta = self.delta[drop:]
         self.alpha = np.column_stack([f.alpha() for f in self.factors])
         self.set_delta(self.delta)
 

@@ -277,6 +277,24 @@ def test_copositivity_margin_is_exact_against_sampling():
     assert copositivity_margin(np.array([[0.0, 1.0], [1.0, 0.0]])) >= 0   # copositive, not PSD
 
 
+@pytest.mark.parametrize('N', [2, 3, 5, 7])
+def test_copositivity_margin_of_z_matrices_is_their_least_eigenvalue(N):
+    # diag(m) - B with B >= 0 (the a-posteriori bound's matrix) takes the least-eigenvalue path;
+    # it must agree with Kaplan's enumeration of principal submatrices, done here by hand
+    from itertools import combinations
+    rng = np.random.default_rng(N)
+    for _ in range(40):
+        A = np.diag(rng.uniform(0.1, 3.0, N)) - rng.uniform(0, 1, (N, N)) * rng.uniform(0, 1.5)
+        S = 0.5 * (A + A.T)
+        kaplan = np.inf
+        for r in range(1, N + 1):
+            for sub in combinations(range(N), r):
+                w, V = np.linalg.eigh(S[np.ix_(sub, sub)])
+                pos = np.all(V > 0, axis=0) | np.all(V < 0, axis=0)
+                kaplan = min(kaplan, w[pos].min(initial=np.inf))
+        assert copositivity_margin(A) == pytest.approx(kaplan, rel=1e-10, abs=1e-12)
+
+
 @pytest.mark.parametrize('window', [None, 7, 40])
 def test_window_cholesky_equals_fresh_factorization(window):
     """

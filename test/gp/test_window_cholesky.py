@@ -47,6 +47,39 @@ def _check_against_fresh(wc, K, r, lo, hi, tol=1e-10):
     assert np.max(np.abs(wc.alpha() - a)) <= 1e3 * tol * np.abs(a).max()
 
 
+@pytest.mark.parametrize('k,dup', [(1, 0.0), (5, 0.0), (40, 0.0), (12, 0.5)])
+def test_append_block_matches_a_fresh_factorization(k, dup):
+    """
+    Check ``append_block`` of k samples against scipy's Cholesky of all of them.
+
+    ``dup``: half the new samples repeat the one before (to rounding).
+    """
+    n = 30
+    sn2 = 1e-3
+    X, K, r = _stream(n + 3 * k, [0.4, 0.7], sn2, seed=k, dup=dup, jitter_dup=1e-13)
+    wc = WindowCholesky(cholesky(K[:n, :n], lower=True), r[:n], limit=None)
+    for b in range(3):
+        lo, hi = n + b * k, n + (b + 1) * k
+        wc.append_block(K[:lo, lo:hi], K[lo:hi, lo:hi], sn2, r[lo:hi])
+        _check_against_fresh(wc, K, r, 0, hi, tol=1e-8 if dup else 1e-10)
+
+
+def test_append_block_below_the_floor_is_the_one_by_one_appends():
+    # a Schur complement below the floor (repeated samples, floor above the noise): the block
+    # falls back to single appends, each clamped at the floor, and gives exactly their result
+    n, k, sn2 = 20, 8, 1e-4
+    _, K, r = _stream(n + k, [0.4, 0.7], sn2, seed=3, dup=1.0)
+    floor = 10 * sn2
+    L0 = cholesky(K[:n, :n], lower=True)
+    block, single = WindowCholesky(L0, r[:n]), WindowCholesky(L0, r[:n])
+    block.append_block(K[:n, n:], K[n:, n:], floor, r[n:])
+    for j in range(k):
+        single.append(K[:n + j, n + j], float(K[n + j, n + j]), floor, float(r[n + j]))
+    np.testing.assert_array_equal(block.L, single.L)
+    np.testing.assert_array_equal(block.z, single.z)
+    assert np.min(np.diag(block.L)[n:]) == pytest.approx(np.sqrt(floor))
+
+
 @pytest.mark.parametrize('window', [2, 3, 17, 150])
 def test_append_drop_cycles_match_a_fresh_factorization(window):
     """
