@@ -3,9 +3,10 @@ The output gate: every answer of the message path is computed and checked here (
 
 :func:`answer` predicts at k velocities from a learner snapshot (one vectorized call) and checks
 each answer: non-finite or non-passive estimates (beyond rounding) are replaced by the passive
-prior, and an estimate larger than what was learned is scaled down to it (``BOUND_FACTOR`` x the
-largest learned force per joint, or the prior's own force where that is larger: a uniform
-scaling keeps ``qd . tau_hat >= 0``); each case is counted in the message path's ``Health``.
+prior, and an estimate larger than what was learned is clipped to it joint by joint
+(``BOUND_FACTOR`` x the largest learned force per joint, or the prior's own force where that is
+larger), or scaled down as a whole where clipping would make ``qd . tau_hat`` negative (a uniform
+scaling keeps it >= 0); each case is counted in the message path's ``Health``.
 """
 from __future__ import annotations
 
@@ -142,13 +143,13 @@ def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, he
         source = source.copy()
         source[bad] = 'fallback'
     if snap is not None and snap.velocity_box is not None:
-        tau, D = _bound(snap, Q, tau, D, health)
+        tau, D = _bound(snap, Q, tau, D, health, passivity)
     return tau, std, D, source
 
 
-def _bound(snap: Snapshot, Q, tau, D, health):
+def _bound(snap: Snapshot, Q, tau, D, health, passivity: str):
     """
-    Scale down answers beyond ``BOUND_FACTOR`` x the learned force (or the prior's).
+    Clip answers beyond ``BOUND_FACTOR`` x the learned force (or the prior's), joint by joint.
 
     The prior's force raises the limit as far as it goes inside the learned velocity box
     (``velocity_box``: the query clipped into it): a prior fitted to a few samples may
@@ -178,13 +179,25 @@ def _bound(snap: Snapshot, Q, tau, D, health):
             prior = np.minimum(prior, BOUND_FACTOR * snap.residual_bound)
         lb = np.maximum(limit, prior)
         worst[big] = (np.abs(tau[big]) / lb).max(axis=1)
+        limit = np.broadcast_to(limit, tau.shape).copy()
+        limit[big] = lb
     big = worst > 1.0
     if np.any(big):
         health.answers_bounded += int(big.sum())
-        s = 1.0 / worst[big]
+        # each joint beyond its limit is clipped to it: one joint whose learned force is still
+        # tiny (the A320's side force before the cross-wind builds up) must not scale down the
+        # others; where that would make the power negative, the whole answer is scaled instead
+        # (a uniform scaling keeps qd . tau_hat >= 0)
+        tb = tau[big]
+        s = np.minimum(1.0, np.broadcast_to(limit, tau.shape)[big] /
+                       np.maximum(np.abs(tb), 1e-300))
+        if passivity != 'none':
+            Qb = Q[big]
+            neg = np.einsum('ij,ij->i', Qb, tb * s) < -passive_tolerance(Qb, tb * s)
+            s[neg] = (1.0 / worst[big][neg])[:, None]
         tau = tau.copy()
-        tau[big] *= s[:, None]
+        tau[big] = tb * s
         if D is not None:
             D = D.copy()
-            D[big] *= s[:, None, None]
+            D[big] *= s[:, :, None]
     return tau, D

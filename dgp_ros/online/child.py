@@ -26,6 +26,8 @@ class LearnerLoop:
     """One learner process's work (module docstring); arguments as ``process._child_main``."""
 
     IDLE_WAIT_S = 0.002
+    #: no sample for this long: the stream has paused (a stale certificate is re-proven)
+    PAUSE_S = 0.3
     #: learning time per round (s): commands are read and snapshots sent between rounds
     ROUND_S = 0.01
     #: longest catch-up before a command that must see the samples sent before it (s)
@@ -42,10 +44,12 @@ class LearnerLoop:
         self.waits = []                 # (id, wall deadline) of 'wait' commands
         self.sent_at = self.status_at = 0.0
         self.row_s = 1e-4               # learning seconds per sample (moving average)
+        self.sample_at = time.monotonic()   # when the last samples were taken from the ring
         self.period = self.P.SNAPSHOT_PERIOD_S
         try:
             config = dataclasses.replace(EstimatorConfig.from_dict(cfg), refit_mode='async')
             self.learner = Learner(config)
+            self.learner.append_each = False      # appended per round below, as one block
             if init is not None and init.model is not None:   # newer than the last file
                 self.learner.adopt(init.model, 'the last snapshot')
             if init is not None and init.residual_bound is not None:
@@ -77,7 +81,7 @@ class LearnerLoop:
                     break
                 busy = self._samples()
                 if not busy:
-                    self.learner.poll()
+                    self.learner.poll(idle=time.monotonic() - self.sample_at >= self.PAUSE_S)
                 self._publish()
                 if not busy:
                     self.cmd.poll(self.IDLE_WAIT_S)
@@ -99,6 +103,7 @@ class LearnerLoop:
             type(L).absorb_wait
         if not rows.shape[0]:
             return False
+        self.sample_at = time.monotonic()
         t0 = time.perf_counter()
         N = (rows.shape[1] - 1) // 3
         done = []
@@ -108,7 +113,12 @@ class LearnerLoop:
                                         r[1 + N:1 + 2 * N].copy(),
                                         None if np.isnan(q[0]) else q.copy())
             done.extend(res)
-        # the learning cost per row (a moving average) sizes the next round
+        if rows.shape[0] < want:
+            # the round's samples reach the model at once (one block); while samples queue up
+            # the rebases take them in instead: one refit per batch costs less
+            L.catch_up()
+        # the learning cost per row (a moving average, the appends included) sizes the next
+        # round
         self.row_s = 0.8 * self.row_s + 0.2 * (time.perf_counter() - t0) / rows.shape[0]
         if done and self.residuals:
             self.out.send(('residuals', done))

@@ -214,9 +214,10 @@ class EstimatorConfig:
         """
         Return the GP's constructor arguments for this configuration.
 
-        Window, passivity, prior.
+        Passivity, prior, no window: the learner appends each new sample to the model and
+        rebases it on the buffer every so often (``absorb``); the buffer holds the window.
         """
-        kw = {'passivity': self.passivity, 'window': self.buffer_size,
+        kw = {'passivity': self.passivity, 'window': None,
               'prior': 'viscous' if self.prior == 'auto' else self.prior,
               'bias': bool(self.bias) and self.prior != 'auto'}
         if self.operating_domain and self.passivity == 'certified':

@@ -12,7 +12,8 @@ where everything is learned; where it runs is ``refit_mode``:
   dies, the last snapshot keeps answering while a new learner starts from it.
 * ``'async'``: the learner in this process, its refits in a background thread.
 * ``'sync'``: everything in line, deterministic (``dgp-replay``, tests): each answer comes
-  from the model after it learned the message, as in the live node once its learner caught up.
+  from the model that learned every message before it (one step ahead), as in the live node
+  whose learner keeps up.
 
 Every answer passes one output gate (``answer.answer``).
 """
@@ -166,33 +167,36 @@ class OnlineEstimator:
         """
         Process messages ``(stamp_s, names, velocity, effort, position)`` in order.
 
-        Each is validated and handed to the learner as ``process`` does; the accepted ones are
-        answered together (one vectorized prediction). Returns one Estimate (or None) each.
+        Each is validated and answered as ``process`` does, from the model *before* it learned
+        the message (as in the node, whose learner takes a message after its answer): the
+        accepted ones together (one vectorized prediction), then they are handed to the
+        learner; in line (``sync``) one by one, so that each answer comes from the model that
+        learned every message before it. Returns one Estimate (or None) each.
         """
         t0 = time.perf_counter()
         out: List[Optional[Estimate]] = [None] * len(messages)
-        keep = []
         with self._lock:
+            accepted = []
             for i, m in enumerate(messages):
                 s = self._accept(*m)
-                if s is None:
-                    continue
-                stamp, names, qd, tau, q = s
-                added, residuals = self._learner.learn(self._learning_time(stamp), qd, tau, q)
-                keep.append((i, stamp, names, qd, tau, added, residuals))
-                if self.config.refit_mode == 'sync' and len(messages) > 1:
-                    # in line, every message is answered by the model after it learned it
-                    self._answer(keep[-1:], out, t0)
-                    keep.clear()
-            if keep:
-                self._answer(keep, out, t0)
+                if s is not None:
+                    accepted.append((i,) + s)
+            groups = ([[a] for a in accepted] if self.config.refit_mode == 'sync'
+                      else [accepted] if accepted else [])
+            for group in groups:
+                pred = self._estimate(self._learner.snapshot(self._want_stddev),
+                                      np.array([a[3] for a in group]))
+                keep = []
+                for i, stamp, names, qd, tau, q in group:
+                    added, residuals = self._learner.learn(self._learning_time(stamp), qd, tau,
+                                                           q)
+                    keep.append((i, stamp, names, qd, tau, added, residuals))
+                self._answer(keep, pred, out, t0)
         return out
 
-    def _answer(self, keep: list, out: list, t0: float) -> None:
-        """Answer the accepted messages ``keep`` from the newest snapshot (into ``out``)."""
-        snap = self._learner.snapshot(self._want_stddev)
-        Q = np.array([k[3] for k in keep])
-        tau_hat, std, D, source = self._estimate(snap, Q)
+    def _answer(self, keep: list, pred: tuple, out: list, t0: float) -> None:
+        """Turn the predictions ``pred`` of the accepted messages ``keep`` into ``out``."""
+        tau_hat, std, D, source = pred
         residuals = self._learner.take_residuals() if keep else []
         h = self.health
         dt = time.perf_counter() - t0

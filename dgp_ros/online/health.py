@@ -101,9 +101,13 @@ class LearnerHealth:
     refits_failed: int = 0
     refits_rejected: int = 0          # candidates the sanity check refused
     recertifications: int = 0
-    absorbs: int = 0                  # refits at fixed hyper-parameters taking new samples in
-    absorbs_rejected: int = 0         # such refits the bound check refused
+    appends: int = 0                  # samples appended to the served model as they came
+    absorbs: int = 0                  # rebases: refits on the buffer at fixed hyper-parameters
+    absorbs_rejected: int = 0         # rebases that failed (non-finite): the samples wait
     last_absorb_error: str = ''
+    proofs_failed: int = 0            # models served unproven (every answer projected)
+    proofs_failed_in_a_row: int = 0   # re-proofs wait longer after each (Absorber._proof_gap)
+    last_proof_error: str = ''
     consecutive_refit_failures: int = 0
     last_refit_error: str = ''
     last_refit_stamp: Optional[float] = None
@@ -115,6 +119,15 @@ class LearnerHealth:
     structure_scores: dict = field(default_factory=dict)   # its best CV scores
     correction_basis: str = ''        # what the conservative correction is built from
     corrections_refused: int = 0      # corrections that would inflate the targets: not applied
+
+    def proof_done(self, why_not: str) -> None:
+        """Count a proof attempt of a served model: ``why_not`` '' when it holds."""
+        if why_not:
+            self.proofs_failed += 1
+            self.proofs_failed_in_a_row += 1
+        else:
+            self.proofs_failed_in_a_row = 0
+        self.last_proof_error = why_not
 
     def refit_done(self, ok: bool, seconds: float, stamp, optimized: bool, error: str,
                    wall_time: float) -> None:
@@ -148,8 +161,10 @@ class LearnerHealth:
             'inverse_dynamics_errors': self.inverse_dynamics_errors,
             'samples_awaiting_model': self.samples_awaiting_model,
             'time_jumps_back': self.time_jumps_back, 'time_jumps_forward': self.time_jumps_forward,
-            'recertifications': self.recertifications, 'absorbs': self.absorbs,
-            'absorbs_rejected': self.absorbs_rejected, 'last_absorb_error': self.last_absorb_error,
+            'recertifications': self.recertifications, 'appends': self.appends,
+            'absorbs': self.absorbs, 'absorbs_rejected': self.absorbs_rejected,
+            'last_absorb_error': self.last_absorb_error, 'proofs_failed': self.proofs_failed,
+            'last_proof_error': self.last_proof_error,
             'refit_durations': list(self.refit_durations),
         }
 
@@ -227,7 +242,10 @@ class Health:
             reasons.append('certificate being re-proven after updates (estimates passive '
                            'pointwise meanwhile)')
         elif state['certifies'] and not state['certified']:
-            reasons.append('not certified')
+            why = learner.get('last_proof_error', '')
+            reasons.append('not certified' + (f' ({why})' if why else '') +
+                           ': every estimate projected onto qd^T tau >= 0; re-proven after '
+                           'new samples')
             level = WARN
         if self.recent_rejected_fraction > REJECT_WARN_FRACTION:
             reasons.append(f'many rejected samples ({100 * self.recent_rejected_fraction:.0f}% '

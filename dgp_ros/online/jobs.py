@@ -6,7 +6,9 @@ Refit and re-proof jobs of the learner: start, integrate, swap (no rclpy).
 ``'sync'``), and integrates its result: the candidate is compared one step ahead with the
 incumbent on the samples that arrived during its fit (``_held_out``), refitted at its new
 hyper-parameters on the buffer as it is now, and swapped in under the lock, which is held only to
-read the buffer and for the swap.
+read the buffer and for the swap. A re-proven model is caught up with the samples appended to the
+served one meanwhile. An unproven candidate serves with every answer projected (``worker``);
+re-proofs after failed ones wait longer (``Absorber._proof_gap``).
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .worker import provable, RefitJob, RefitResult, run_job
+from .worker import prove, RefitJob, RefitResult, run_job
 
 __all__ = ['JobRunner']
 
@@ -40,8 +42,13 @@ class JobRunner:
         """Tell whether the buffer has at least doubled since the hyper-parameters were learned."""
         return 0 < self._opt_n and self._buf.size >= 2 * self._opt_n
 
-    def _next_job(self, stamp: float) -> Optional[RefitJob]:
-        """Make the one decision (under the lock) of what the worker does next, if anything."""
+    def _next_job(self, stamp: float, idle: bool = False) -> Optional[RefitJob]:
+        """
+        Make the one decision (under the lock) of what the worker does next, if anything.
+
+        ``idle``: the stream paused (``Learner.poll``): a stale model not tried since it last
+        changed is re-proven without waiting for the re-proof period.
+        """
         cfg = self.config
         if self._buf is None or self._buf.size < cfg.min_samples or self.refit_running():
             return None
@@ -63,15 +70,20 @@ class JobRunner:
             self._retry_at = None
             self._clock = stamp
             return self._fit_job()
-        if self._model is not None and self._model.certificate().stale:
+        if cfg.refit_mode != 'sync' and self._model is not None and \
+                self._model.certificate().stale:
             # a stale model stays passive pointwise: re-prove at most every refit_period_s / 4
-            gap = cfg.refit_period_s / 4.0 if cfg.refit_period_s > 0 else 0.25
+            # (longer after failed proofs), beside the answers; in line the proof comes with the
+            # refits only (it would hold up the replay and be stale at the next sample)
+            gap = self._proof_gap(cfg.refit_period_s / 4.0 if cfg.refit_period_s > 0 else 0.25)
             last = self._last_recert
-            if last is None or stamp < last or stamp - last >= gap:
-                self._last_recert = stamp
-                return RefitJob('recertify', dataclasses.replace(cfg), self._seq,
+            if last is None or stamp < last or stamp - last >= gap or \
+                    (idle and self._model_seq != self._recert_seq):
+                self._last_recert, self._recert_seq = stamp, self._model_seq
+                return RefitJob('recertify', dataclasses.replace(cfg), self._model_seq,
                                 self._generation, self._last_t,
-                                model=copy.deepcopy(self._model), source=self._model)
+                                model=copy.deepcopy(self._model), source=self._model,
+                                target_gen=self._model_gen)
         return None
 
     def _fit_job(self) -> RefitJob:
@@ -90,7 +102,8 @@ class JobRunner:
         return RefitJob('fit', dataclasses.replace(cfg), self._seq, self._generation,
                         self._last_t, Q=Q, T=T, optimize=optimize,
                         hyper=self._with_prior(self._hyper),
-                        warm=warm, kw=self._model_kw(cfg), correction=self._correction())
+                        warm=warm, kw=self._model_kw(cfg), correction=self._correction(),
+                        target_gen=self._target_gen)
 
     def request_refit(self) -> Tuple[bool, str]:
         """Refit now (async: start it in the background). Returns (ok, message)."""
@@ -131,12 +144,13 @@ class JobRunner:
 
         A fitted candidate that passes the held-out check is refitted at its new
         hyper-parameters on the buffer as it is now (the samples that arrived during its fit
-        included) and swapped in; a re-proven model is swapped in only if the model did not
-        change meanwhile (else the next re-proof covers the newer one).
+        included) and swapped in; a re-proven model is swapped in if the served model is still
+        the one it was copied from, with the samples appended to that one meanwhile.
         """
-        job, model, ok, why = res.job, res.model, res.ok, res.reason
+        job, model, ok, why, proof = res.job, res.model, res.ok, res.reason, res.proof
         cfg, h = job.config, self.health
         t0 = time.perf_counter() - res.seconds
+        seq, gen = job.seq, job.target_gen
         try:
             if ok and job.kind == 'fit':
                 ok, why, _ = self._held_out(model, job.seq)
@@ -144,13 +158,14 @@ class JobRunner:
                     h.refits_rejected += 1
             if ok and job.kind == 'fit':
                 with self._lock:
-                    newer = self._seq != job.seq
+                    newer = self._seq != job.seq or self._target_gen != job.target_gen
                     Q, T = self._buf.arrays() if newer else (None, None)
                     correction = self._correction()
+                    seq, gen = self._seq, self._target_gen
                 if newer:
                     model.fit(Q, T, optimize=False)
                     model.correction_ = correction
-                    ok, why = provable(model, cfg.passivity)
+                    proof = prove(model, cfg.passivity)
         except Exception as exc:
             ok, why = False, f'{type(exc).__name__}: {exc}'
         dt = time.perf_counter() - t0
@@ -158,26 +173,21 @@ class JobRunner:
             if job.generation != self._generation:
                 return False, 'discarded: the estimator was reset'
             self._pending.clear()
-            if job.kind == 'recertify':
-                if ok and self._model is job.source:
-                    self._swap(job, model)
-                h.recertifications += int(ok)
-                if not ok:
-                    h.last_refit_error = f'recertification failed: {why}'
-                return ok, (f'recertified in {dt:.3f} s' if ok else h.last_refit_error)
             if ok:
-                self._swap(job, model)
-                self._fresh = 0
+                h.proof_done(proof)
+            if job.kind == 'recertify':
+                return self._recertified(job, model, ok, why, proof, dt)
+            if ok:
+                self._swap(job, model, seq, gen)
             if not ok and why.startswith('sanity check') and 'samples that arrived' not in why:
                 h.refits_rejected += 1
             if ok:
                 self._retry_at = None
             elif self._model is None or h.consecutive_refit_failures < self.MAX_RETRIES:
-                # a rejected or unproven candidate is retried once fresh samples arrived (it
-                # learns from the ones it failed on), not only at the next refit period; a
-                # short bag, or refit_period_s = 0, would otherwise keep the first model (or,
-                # before any, the prior: a Full D-GP's first proof failed on 3 of 120 small
-                # fits) for good
+                # a rejected candidate is retried once fresh samples arrived (it learns from
+                # the ones it failed on), not only at the next refit period; a short bag, or
+                # refit_period_s = 0, would otherwise keep the first model (or, before any, the
+                # prior) for good
                 self._retry_at = self._seq + max(10, cfg.buffer_size // 4) * \
                     2 ** min(h.consecutive_refit_failures, 6)          # backing off
             h.refit_done(ok, dt, job.stamp, job.optimize,
@@ -191,6 +201,38 @@ class JobRunner:
                 with self._lock:
                     h.last_refit_error = f'refit ok but saving failed: {exc}'
         return (True, f'refit ok in {dt:.3f} s') if ok else (False, error)
+
+    def _recertified(self, job: RefitJob, model, ok: bool, why: str, proof: str,
+                     dt: float) -> Tuple[bool, str]:
+        """
+        Serve a re-proven copy of the model (under the lock); (ok, message).
+
+        Only if the served model is still the one it was copied from (a rebase or a refit
+        replaces it otherwise); the samples appended to that one since are appended to the copy
+        (its certificate then goes stale again, its repairs stay).
+        """
+        h = self.health
+        if not ok:
+            h.last_refit_error = f'recertification failed: {why}'
+            return False, h.last_refit_error
+        if self._model is not job.source:
+            return False, 'recertified, but a newer model serves'
+        if self._model_seq != job.seq:
+            rows = [r for r in self._rows if job.seq < r[0] <= self._model_seq]
+            if len(rows) != self._model_seq - job.seq or \
+                    any(r[1] != job.target_gen for r in rows):
+                return False, 'recertified, but the model moved on'
+            try:
+                model.update(np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
+            except Exception as exc:    # noqa: BLE001 - the served model stays
+                return False, f'recertified, but catching up failed: {exc}'
+        self._model = model
+        self._version += 1
+        h.recertifications += int(not proof)
+        if proof:
+            h.last_refit_error = f'recertification failed: {proof}'
+            return False, h.last_refit_error
+        return True, f'recertified in {dt:.3f} s'
 
     def _held_out(self, model, seq: int) -> Tuple[bool, str, int]:
         """
@@ -227,14 +269,12 @@ class JobRunner:
                            f"model's"), seq
         return True, '', seq
 
-    def _swap(self, job: RefitJob, model) -> None:
-        """Install the candidate (under the lock)."""
-        self._model = model
-        self._version += 1
-        if job.kind == 'fit':
-            self._hyper = model.hyperparams_
-            if job.optimize:
-                self._opt_n = job.Q.shape[0]
+    def _swap(self, job: RefitJob, model, seq: int, gen: int) -> None:
+        """Install a fitted candidate that holds the samples up to ``seq`` (under the lock)."""
+        self._based(model, seq, gen)
+        self._hyper = model.hyperparams_
+        if job.optimize:
+            self._opt_n = job.Q.shape[0]
 
     def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
         """Block until no refit is running; True if none is running at return."""

@@ -40,7 +40,7 @@ from .jobs import JobRunner
 from .selection import Buffer, Selector
 from .snapshot import Snapshot
 from .structure import StructureMixin
-from .worker import provable
+from .worker import prove
 
 __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
 
@@ -103,9 +103,7 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
         self._rmax = None                  # largest |residual| learned per joint (structure.py)
         self._selector = Selector()
         self._seq = 0                     # samples ever added (orders the catch-up)
-        self._fresh = 0                   # samples added since the model last absorbed them
-        self._absorbed_at = 0.0           # perf_counter() at the end of the last absorb
-        self._absorb_cost = 0.0           # wall seconds of the last absorb
+        self._reset_absorber(self.config.buffer_size)
         # (seq, qd, tau, answer before learning) added while a refit runs; only the newest
         # buffer_size can survive the model's window, so older ones are dropped here
         self._pending: deque = deque(maxlen=self.config.buffer_size)
@@ -202,6 +200,8 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
                     self._clock = t
             self._last_t = t
             added, residuals = self._learn(t, qd, tau, q)
+            if self.append_each:
+                self.catch_up()
             job = self._next_job(t)
             absorb = job is None and self._absorb_due()
         if job is not None:
@@ -210,12 +210,18 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
             self._absorb_soon()
         return added, residuals
 
-    def poll(self) -> None:
-        """Do what became due without a new sample: a job, or absorbing the last samples."""
+    def poll(self, idle: bool = False) -> None:
+        """
+        Do what became due without a new sample: a job, or absorbing the last samples.
+
+        ``idle``: the stream has paused (a learner process says so after ``PAUSE_S`` without a
+        sample); a stale certificate is then re-proven at once: the proof holds until the stream
+        resumes.
+        """
         with self._lock:
             if self._last_t is None:
                 return
-            job = self._next_job(self._last_t)
+            job = self._next_job(self._last_t, idle)
             absorb = job is None and self._absorb_due()
         if job is not None:
             self._start(job)
@@ -269,7 +275,7 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
         self._buf.append(qd, target, (residual, yt) if self.auto else None)
         self._selector.additions += 1
         self._seq += 1
-        self._fresh += 1
+        self._rows.append((self._seq, self._target_gen, qd, target))
         if self._model is None:
             self._version += 1                  # the prior the answers come from may change
         h.samples_added += 1
@@ -403,7 +409,9 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
             if self._model is None:
                 raise RuntimeError('no trained model to save yet')
             model = copy.deepcopy(self._model)
-        if self._reselect_due() and self._model is not None:
+        if self._model is not None and (self.unheld or self._history_grew()):
+            with self._lock:
+                self._reselect_now = True
             self._absorb()          # the saved prior and correction see the whole history
             with self._lock:
                 model = copy.deepcopy(self._model)
@@ -415,7 +423,9 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
         """
         Serve ``model`` and buffer its training samples (a model file, a restarted learner).
 
-        Raises ValueError when it does not fit the configuration or cannot be proven.
+        Raises ValueError when it does not fit the configuration. Its certificate is proven
+        again (never trusted from the file); one that does not hold serves with every answer
+        projected, as a refit's would.
         """
         cfg = self.config
         kind = model.posterior_.structure.kind
@@ -430,18 +440,17 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
             raise ValueError(f'{source or "the"} model passivity {model.passivity!r} != '
                              f'{cfg.passivity!r}')
         model.posterior_ = model.posterior_.ensure_factors()    # a snapshot is predict-only
-        ok, why = provable(model, cfg.passivity)      # re-proves: never trusts the file
-        if not ok:
-            raise ValueError(why)
+        proof = prove(model, cfg.passivity)           # re-proves: never trusts the file
         with self._lock:
+            self.health.proof_done(proof)
             self._N = X.shape[1]
             self._buf = Buffer.of(cfg.buffer_size, X, Y, policy=cfg.buffer_policy)
             self._seq = self._buf.size
-            self._model = model
+            self._reset_absorber(cfg.buffer_size)
+            self._based(model, self._seq, self._target_gen)
             self._hyper = model.hyperparams_
             self._opt_n = X.shape[0]
             self._clock = None              # set by the first message
-            self._version += 1
 
     def _load(self, path: str) -> None:
         try:

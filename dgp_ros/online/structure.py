@@ -77,6 +77,7 @@ class StructureMixin:
         """Re-select and refit the parametric part; retarget the buffer (under the lock)."""
         if not self.auto or self._history is None or self._history.samples == 0:
             return
+        self._reselect_now = False
         fit = self._history.select()
         if fit.conservative and self._inflates(fit):
             # a pose-dependent correction fitted to a short or narrow history can be larger
@@ -91,6 +92,7 @@ class StructureMixin:
                                                            key=lambda kv: kv[1])[:6]}
         if self._buf is not None:
             self._buf.retarget(fit.train_correction)
+            self._target_gen += 1       # what the model holds is not appended to any more
 
     #: a correction may make no learned target larger than this times the largest residual
     CORRECTION_INFLATION = 1.5
@@ -114,10 +116,19 @@ class StructureMixin:
     #: the structure is re-selected when the history has grown by this factor since the last
     RESELECT_GROWTH = 1.25
 
+    #: set to re-select at the next occasion whatever the growth (a model about to be saved)
+    _reselect_now = False
+
     def _reselect_due(self) -> bool:
         h, p = self._history, self._param
         return self.auto and h is not None and h.samples > 0 and (
-            p is None or h.samples >= self.RESELECT_GROWTH * max(p.samples, 1))
+            p is None or h.samples >= self.RESELECT_GROWTH * max(p.samples, 1) or
+            (self._reselect_now and h.samples > p.samples))
+
+    def _history_grew(self) -> bool:
+        """Tell whether samples came into the long history since the last selection."""
+        h, p = self._history, self._param
+        return self.auto and h is not None and p is not None and h.samples > p.samples
 
     def _with_prior(self, hyper: Optional[dict]) -> Optional[dict]:
         """Return warm-start hyper-parameters carrying the current frozen prior."""

@@ -4,8 +4,11 @@ The refit worker: turns a job into a candidate model, off the message path.
 A job is a snapshot (samples, hyper-parameters to start from, configuration) or, to re-prove a
 stale certificate, a copy of the current model. ``run_job`` knows nothing about the estimator
 that made the job: it builds the model with an injected factory, fits or re-proves it, and says
-whether the candidate may replace the current model (a certifying passivity mode only swaps in
-a proven model). The estimator then replays the samples that arrived meanwhile and swaps.
+whether the candidate may replace the current model (finite and bounded on and around its data)
+and, in a certifying passivity mode, whether it is proven. A candidate that is not proven still
+serves: every answer of it is projected onto ``q^T tau >= 0`` (the mode's fallback) until a
+re-proof succeeds; passive data never stop the learning. The estimator then appends the samples
+that arrived meanwhile and swaps.
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ import numpy as np
 
 from dgp_ros.gp.passivity import policy_class
 
-__all__ = ['RefitJob', 'RefitResult', 'run_job', 'provable', 'sane']
+__all__ = ['RefitJob', 'RefitResult', 'run_job', 'prove', 'sane']
 
 
 @dataclass
@@ -28,7 +31,9 @@ class RefitJob:
     seq : samples the estimator had added when the snapshot was taken (for the catch-up);
     generation : the estimator's reset count (a reset discards the result); stamp : message
     stamp at the start (s); config : the ``EstimatorConfig`` the candidate is built for;
-    warm : refine ``hyper`` without restarts.
+    warm : refine ``hyper`` without restarts; target_gen : the learner's target generation
+    of ``T`` (a re-selection of ``prior='auto'`` changes the targets). For 'recertify', ``seq``
+    is the last sample the served model held when it was copied.
     """
 
     kind: str
@@ -45,6 +50,7 @@ class RefitJob:
     source: object = None       # 'recertify': the served model ``model`` is a copy of
     kw: Optional[dict] = None   # 'fit': the model's constructor arguments (else the config's)
     correction: object = None   # 'fit': what the targets T exclude (saved with the model)
+    target_gen: int = 0
 
 
 @dataclass
@@ -53,7 +59,8 @@ class RefitResult:
     Outcome of a refit job.
 
     The candidate (None when building it failed), whether it may be swapped in, why not,
-    and the wall time spent (s).
+    the wall time spent (s), and why its certificate is not proven ('' when it is, or when the
+    mode proves nothing).
     """
 
     job: RefitJob
@@ -61,26 +68,27 @@ class RefitResult:
     ok: bool
     reason: str
     seconds: float
+    proof: str = ''
 
 
-def provable(model, passivity: str) -> Tuple[bool, str]:
+def prove(model, passivity: str) -> str:
     """
-    Check whether ``model`` may serve under ``passivity``.
+    Prove ``model``'s certificate under ``passivity`` where it is stale; '' when it holds.
 
-    (ok, reason): may ``model`` serve under ``passivity``? For a certifying mode the
-    certificate must hold; a stale one is re-proven here (this is the only caller that does).
+    Otherwise the reason (the model then answers with every estimate projected). Non-certifying
+    modes have nothing to prove. This and ``gp``'s own fit are the only places that prove.
     """
     if not policy_class(passivity).certifies:
-        return True, ''
+        return ''
     try:
         cert = model.certificate()
         if cert.stale:
             cert = model.recertify()
     except Exception as exc:
-        return False, f'certificate failed: {type(exc).__name__}: {exc}'
+        return f'certificate failed: {type(exc).__name__}: {exc}'
     if cert.certified:
-        return True, ''
-    return False, f'certificate does not hold (margin {cert.margin:.3g}, {cert.method})'
+        return ''
+    return f'certificate does not hold (margin {cert.margin:.3g}, {cert.method})'
 
 
 #: a candidate's estimates may exceed the largest force of its data by at most this factor
@@ -130,8 +138,8 @@ def run_job(job: RefitJob, factory: Callable) -> RefitResult:
             ok, why = sane(model, job.Q, job.T)
             if not ok:
                 return RefitResult(job, model, False, why, time.perf_counter() - t0)
-        ok, why = provable(model, cfg.passivity)
+        proof = prove(model, cfg.passivity)
     except Exception as exc:
         return RefitResult(job, None, False, f'{type(exc).__name__}: {exc}',
                            time.perf_counter() - t0)
-    return RefitResult(job, model, ok, why, time.perf_counter() - t0)
+    return RefitResult(job, model, True, '', time.perf_counter() - t0, proof)

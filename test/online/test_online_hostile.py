@@ -245,7 +245,7 @@ def test_answers_stay_within_a_factor_of_the_largest_residual_learned():
                         force_bound=np.array([2.0, 1.0]), learned_through=1.0, frozen=True,
                         velocity_box=(-np.ones(2), np.ones(2)), residual_bound=rb)
         health = SimpleNamespace(answers_bounded=0)
-        outs.append(_bound(snap, at, tau_wild.copy(), None, health)[0])
+        outs.append(_bound(snap, at, tau_wild.copy(), None, health, 'projected')[0])
     assert outs[0][0, 0] == pytest.approx(BOUND_FACTOR * 2.0)      # 1.5 x the targets' 2.0
     assert outs[1][0, 0] == pytest.approx(RESIDUAL_FACTOR * 1.0)   # 1.8 x the residual's 1.0
     np.testing.assert_allclose(outs[1][1], tau_wild[1])             # small ones untouched

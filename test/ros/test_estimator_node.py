@@ -161,6 +161,13 @@ def test_every_topic_publishes_and_estimate_converges(rig):
     # enough for the learner to keep up (10 ms of stamp time in 20 ms of wall time)
     feed(rig, 30, t0=7.2, pub=rig.pub_be, pace=0.02)
     assert rig.spin_until(lambda: len(rig.got['diag']) >= 2, 10)
+
+    def certified():
+        st = rig.got['diag'][-1].status[0]
+        return {kv.key: kv.value for kv in st.values}.get('certified') == 'True'
+    # the stream has paused: the learner re-proves the certificate that the last samples left
+    # stale (3 velocities, a proof on the data's domain)
+    assert rig.spin_until(certified, 30)
     g = rig.got
     assert len(g['force']) >= 90 and len(g['std']) >= 90 and len(g['power']) >= 90
     assert len(g['D']) >= 90
