@@ -49,6 +49,9 @@ class Absorber:
     BACKLOG_ABSORB_WAIT = 8.0
     #: append each sample in ``learn`` (in line); the learner process appends per round instead
     append_each = True
+    #: appends keep up (a learner process clears it while samples queue up for it: rebases
+    #: take them in then)
+    appending = True
 
     def _reset_absorber(self, rows: int) -> None:
         """Forget what was appended (a new learner state; ``rows``: samples kept to append)."""
@@ -57,6 +60,7 @@ class Absorber:
         self._model_gen = 0           # the target generation of the samples it holds
         self._target_gen = 0          # bumped whenever the buffer's targets change (reselection)
         self._appended = 0            # samples appended since the model was (re)fitted
+        self._append_blocked = False  # unheld samples the model cannot take by appending
         self._recert_seq = -1         # _model_seq when a re-proof was last started
         self._absorbed_at = 0.0       # perf_counter() at the end of the last rebase
         self._absorb_cost = 0.0       # wall seconds of the last rebase
@@ -65,6 +69,7 @@ class Absorber:
         """Serve ``model``, fitted on the buffer of ``seq`` with targets of ``gen`` (locked)."""
         self._model = model
         self._model_seq, self._model_gen, self._appended = seq, gen, 0
+        self._append_blocked = False
         self._version += 1
 
     @property
@@ -87,6 +92,7 @@ class Absorber:
             rows = [r for r in self._rows if r[0] > self._model_seq]
             if not rows or rows[0][0] != self._model_seq + 1 or \
                     any(r[1] != self._model_gen for r in rows):
+                self._append_blocked = True
                 return 0
             try:
                 self._model.update(np.array([r[2] for r in rows]),
@@ -106,15 +112,17 @@ class Absorber:
         """
         Tell whether a rebase is due.
 
-        When samples wait that appending could not take, after ``buffer_size //
-        REBASE_FRACTION`` appends, or when the structure is to be re-selected. In line
+        When samples wait that appending does not take (a learner process that falls behind,
+        samples of other targets), after ``buffer_size // REBASE_FRACTION`` appends, or when
+        the structure is to be re-selected. In line
         (``sync``) at once (deterministic, in learning order); in a learner process or thread
         as soon as the last rebase's cost allows (at most a third of the time rebasing; a ninth
         while samples queue up for the learner: taking every sample in comes first).
         """
         if self._model is None:
             return False
-        if not (self.unheld or self._reselect_due() or
+        waiting = self.unheld and (not self.appending or self._append_blocked)
+        if not (waiting or self._reselect_due() or
                 self._appended >= max(1, self.config.buffer_size // self.REBASE_FRACTION)):
             return False
         if self.config.refit_mode == 'sync':

@@ -98,9 +98,10 @@ class LearnerLoop:
         want = max(1, int(self.ROUND_S / self.row_s))
         rows = self.ring.take(want)
         L = self.learner
-        # a full round means more are waiting: absorb less often until the queue is drained
-        L.absorb_wait = L.BACKLOG_ABSORB_WAIT if rows.shape[0] >= want else \
-            type(L).absorb_wait
+        # a full round means more are waiting: rebase less often and append nothing until the
+        # queue is drained (the rebases take the samples in then)
+        L.appending = rows.shape[0] < want
+        L.absorb_wait = type(L).absorb_wait if L.appending else L.BACKLOG_ABSORB_WAIT
         if not rows.shape[0]:
             return False
         self.sample_at = time.monotonic()
@@ -113,7 +114,7 @@ class LearnerLoop:
                                         r[1 + N:1 + 2 * N].copy(),
                                         None if np.isnan(q[0]) else q.copy())
             done.extend(res)
-        if rows.shape[0] < want:
+        if L.appending:
             # the round's samples reach the model at once (one block); while samples queue up
             # the rebases take them in instead: one refit per batch costs less
             L.catch_up()
