@@ -211,7 +211,7 @@ def _killer(est_pid: int, sc: Scenario, t_start: float, seconds: float, ros_env:
     from rclpy.signals import SignalHandlerOptions
     from std_srvs.srv import Trigger
     from diagnostic_msgs.msg import DiagnosticArray
-    from dgp_ros.executor import WaitSetExecutor
+    from dgp_ros.nodes.executor import WaitSetExecutor
     ctx = rclpy.Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO,
                domain_id=int(ros_env['ROS_DOMAIN_ID']))

@@ -319,7 +319,7 @@ def main(argv=None) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    est_cmd = [sys.executable, '-m', 'dgp_ros.estimator_node', '--ros-args',
+    est_cmd = [sys.executable, '-m', 'dgp_ros.nodes.estimator', '--ros-args',
                '-p', f'model:={args.model}', '-p', f'passivity:={args.passivity}',
                # the aircraft: the paper's viscous prior, no offsets (defaults are for arms)
                '-p', 'prior:=viscous', '-p', 'bias:=false',

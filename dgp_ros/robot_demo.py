@@ -3,7 +3,7 @@ Robot demo: ``dgp-demo --robot panda`` (or ``ur5``), a robot user's first hour, 
 
 Three OS processes over real DDS (a random ROS_DOMAIN_ID, localhost-only discovery):
 
-1. ``arm_sim`` (``dgp_ros.arm_sim_node``): a Panda or UR5 with realistic friction (outside the
+1. ``arm_sim`` (``dgp_ros.nodes.arm_sim``): a Panda or UR5 with realistic friction (outside the
    estimator's prior family), a payload its URDF does not have, sensor bias and noise and
    jittered 1 kHz stamps publishes raw ``/joint_states`` like its driver (the Panda's finger
    joints too), at real time, for the first 60 % of the run;
@@ -135,14 +135,14 @@ def _console(name: str, module: str) -> list:
 
 def estimator_command(robot: str, urdf: str, joints, model_path: str) -> list:
     """Return the estimator as a robot user starts it: URDF, joints, model file, else defaults."""
-    return _console('estimator', 'dgp_ros.estimator_node') + [
+    return _console('estimator', 'dgp_ros.nodes.estimator') + [
         '--ros-args', '-r', 'generalized_state:=/joint_states',
         '-p', 'inverse_dynamics:=urdf', '-p', f'urdf_file:={urdf}',
         '-p', f'joints:={json.dumps(list(joints))}', '-p', f'model_path:={model_path}']
 
 
 def sim_command(a, learn_s: float) -> list:
-    return [sys.executable, '-m', 'dgp_ros.arm_sim_node', '--ros-args',
+    return [sys.executable, '-m', 'dgp_ros.nodes.arm_sim', '--ros-args',
             '-p', f'robot:={a.robot}', '-p', f'duration_s:={float(a.duration)}',
             '-p', f'max_sim_time_s:={float(learn_s)}', '-p', f'seed:={int(a.seed)}',
             '-p', f'payload_kg:={float(a.payload_kg)}', '-p', f'friction:={a.friction}',

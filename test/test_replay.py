@@ -90,7 +90,7 @@ def test_live_and_played_bag_equal_offline_replay(tmp_path, storage):
     from sensor_msgs.msg import JointState
 
     from dgp_ros.bags.ros import Player, Recorder
-    from dgp_ros.estimator_node import EstimatorNode
+    from dgp_ros.nodes.estimator import EstimatorNode
 
     n = 44                   # <= the node's input queue depth (50): nothing can be dropped
     names = ['alpha', 'beta', 'airspeed']
