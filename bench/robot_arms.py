@@ -10,12 +10,13 @@ with positions, velocities and efforts, as a real driver publishes them: the Pan
 finger joints appended, the UR5's in the ``ur_robot_driver`` order (shoulder_pan last), so the
 ``joints`` parameter selects and orders.
 
-Protocol: the first 60 % of the bag (a bag of its own) is learned ONLINE by ``dgp_ros.replay.run``
-(the estimator node's code path, ``refit_mode='sync'``) with ``inverse_dynamics=urdf``; the final
-model is saved (``save_model=``, as ``dgp-replay --save-model``), loaded with
-``dgp_ros.gp.load_model`` and evaluated at the TRUE velocities of the last 40 % against the TRUE
-friction (``friction_truth``, no bias): held-out NMSE per joint. Estimator parameters are the
-shipped defaults except model / prior / bias (and passivity in the 'none' rows).
+Protocol: the first 60 % of the bag (a bag of its own) is learned ONLINE by
+``dgp_ros.apps.replay.run`` (the estimator node's code path, ``refit_mode='sync'``) with
+``inverse_dynamics=urdf``; the final model is saved (``save_model=``, as ``dgp-replay
+--save-model``), loaded with ``dgp_ros.gp.load_model`` and evaluated at the TRUE velocities of
+the last 40 % against the TRUE friction (``friction_truth``, no bias): held-out NMSE per joint.
+Estimator parameters are the shipped defaults except model / prior / bias (and passivity in the
+'none' rows).
 
 Baselines, per joint, by least squares (scipy ``least_squares``) on the residual stream the
 estimator learns from (the estimator's own front end: ``FrictionResidual`` with the URDF RNEA and
@@ -108,12 +109,12 @@ def row_label(kind, prior, bias):
 def replay_row(D, urdf, work, kind, prior, bias, passivity='projected', defaults=False,
                bag=None, save=True, extra=None, note=''):
     """
-    Learn through dgp_ros.replay.run; return the row's numbers (and the loaded model).
+    Learn through dgp_ros.apps.replay.run; return the row's numbers (and the loaded model).
 
     ``extra``: further estimator parameters (non-default rows); ``note``: shown with the row.
     """
     from dgp_ros.gp import load_model
-    from dgp_ros.replay import ReplayError, build_config, run
+    from dgp_ros.apps.replay import ReplayError, build_config, run
     over = {'joints': D['names'], 'inverse_dynamics': 'urdf', 'urdf_file': urdf}
     if not defaults:
         over.update(model=kind, prior=prior, bias=bias, passivity=passivity, **(extra or {}))
@@ -179,7 +180,7 @@ def run_dataset(a, robot, seed, duration, work, urdf, configs, k_pass, extras, b
     whole-bag timing replay and the no-inverse-dynamics WARN replay (quick: no whole-bag replay,
     and only the ARD-GP 'none' row).
     """
-    from dgp_ros.replay import build_config
+    from dgp_ros.apps.replay import build_config
     C.log(f'{NAME}: {robot} seed {seed}: simulate {duration:g} s and write the bags')
     D = make_data(robot, duration, seed, work)
     d = D['sim']
@@ -265,7 +266,7 @@ def run_dataset(a, robot, seed, duration, work, urdf, configs, k_pass, extras, b
             D['whole'] = replay_row(D, urdf, work, *SHIPPED, defaults=True,
                                     bag=D['full_bag'], save=False)
         C.log(f'{NAME}: {robot} seed {seed}: replay the learning bag without inverse dynamics')
-        from dgp_ros.replay import run
+        from dgp_ros.apps.replay import run
         out = os.path.join(work, f'{robot}_{seed}_raw_out')
         s = run(D['learn_bag'], out, config=build_config(None, joints=D['names']), plots=False)
         D['raw'] = {'level': s['status']['level'], 'message': s['status']['message'],
@@ -451,7 +452,7 @@ def main(argv=None) -> int:
         'Stribeck + viscous, 0.3-1.3 N m) + constant sensor bias + 0.3 N m noise, common '
         'standstills every 5 s; written as a raw `/joint_states` bag (Panda: with its two finger '
         "joints; UR5: in the driver's order). The first 60 % is a bag of its own, learned "
-        "online by `dgp_ros.replay.run` (the node's code path) with `inverse_dynamics=urdf`, "
+        "online by `dgp_ros.apps.replay.run` (the node's code path) with `inverse_dynamics=urdf`, "
         '`joints` selected, `save_model=`; every other estimator parameter is the shipped default '
         '(buffer 200, one learned sample per 10 ms, refit every 10 s, passivity projected). The '
         'saved model (`load_model`) predicts the TRUE friction at the TRUE velocities of the last '

@@ -1,8 +1,8 @@
 """
 No module of the package is longer than ``MAX_LINES``: a longer one is split along a seam.
 
-(``dgp_ros/replay.py`` and ``dgp_ros/replay_report.py`` are one such split: the replay engine
-and CLI, and the files it writes.)
+(``dgp_ros/apps/replay.py`` and ``dgp_ros/apps/replay_report.py`` are one such split: the replay
+engine and CLI, and the files it writes.)
 """
 from pathlib import Path
 

@@ -14,8 +14,8 @@ import time
 import numpy as np
 import pytest
 
+from dgp_ros.apps.replay import build_config, main as replay_main, replay, run
 from dgp_ros.bags import write_joint_state_bag
-from dgp_ros.replay import build_config, main as replay_main, replay, run
 
 JS = 'sensor_msgs/msg/JointState'
 

@@ -1,5 +1,5 @@
 """
-End-to-end demo: ``python -m dgp_ros.demo`` (scripts/run_demo.sh, the README's main job).
+End-to-end demo: ``python -m dgp_ros.apps.demo`` (scripts/run_demo.sh, the README's main job).
 
 Starts ``sim_bridge`` (JSBSim A320 approach in periodic wind) and the ``dgp_estimator`` as two OS
 processes talking over real DDS (random ROS_DOMAIN_ID, localhost-only discovery), flies the whole
@@ -10,7 +10,7 @@ plots and ``summary.json`` into ``--out`` (default ``out/demo``).
 
 ``--synthetic`` replaces sim_bridge by an in-process publisher of a known passive damping law
 (no JSBSim needed; used by the tests). ``--robot panda|ur5`` runs the robot demo instead: a
-simulated arm publishing raw ``/joint_states`` into the estimator (``dgp_ros.robot_demo``).
+simulated arm publishing raw ``/joint_states`` into the estimator (``dgp_ros.apps.robot_demo``).
 Children are always terminated on exit (SIGINT, then SIGTERM, then SIGKILL; on Linux they also
 die with this process).
 """
@@ -286,14 +286,14 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if any(x == '--robot' or x.startswith('--robot=') for x in argv):
-        from dgp_ros import robot_demo
+        from dgp_ros.apps import robot_demo
         return robot_demo.main(argv)
     ap = argparse.ArgumentParser(prog='dgp-demo', description=__doc__.split('\n\n')[0],
                                  epilog='The robot demo: dgp-demo --robot panda|ur5 [--quick] '
                                  '(options: dgp-demo --robot panda --help).')
     ap.add_argument('--robot', choices=('panda', 'ur5'),
                     help='run the robot demo instead (a simulated arm publishing raw '
-                    '/joint_states, see dgp_ros/robot_demo.py)')
+                    '/joint_states, see dgp_ros/apps/robot_demo.py)')
     ap.add_argument('--out', default='out/demo', help='output folder (plots, summary.json, logs)')
     ap.add_argument('--rate-hz', type=float, default=60.0, help='simulation output rate')
     ap.add_argument('--real-time-factor', type=float, default=2.0,

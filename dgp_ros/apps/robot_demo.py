@@ -16,7 +16,7 @@ When the stream ends the estimator gets SIGINT and saves its model; the saved mo
 on the held-out last 40 % of the run (a part of the path the arm has not travelled) against the
 true friction, next to the Makkar sigmoid and Coulomb-viscous models fitted by least squares on
 the residual stream of the same 60 %. Summary, ``summary.json`` and plots go to ``--out``
-(``dgp_ros.robot_report``). Children are always stopped on exit (SIGINT, SIGTERM, SIGKILL).
+(``dgp_ros.apps.robot_report``). Children are always stopped on exit (SIGINT, SIGTERM, SIGKILL).
 """
 from __future__ import annotations
 
@@ -188,7 +188,7 @@ def parse_args(argv=None):
 
 
 def main(argv=None) -> int:
-    from dgp_ros.demo import _spawn, _stop, isolated_env
+    from dgp_ros.apps.demo import _spawn, _stop, isolated_env
     a = parse_args(argv)
     os.makedirs(a.out, exist_ok=True)
     t_start = time.monotonic()
@@ -200,7 +200,7 @@ def main(argv=None) -> int:
 
     from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf
     from dgp_ros.dynamics.arm_stream import demo_arm, DriverStream
-    from dgp_ros import robot_report
+    from dgp_ros.apps import robot_report
 
     learn_s = LEARN_FRACTION * a.duration
     model_path = os.path.abspath(os.path.join(a.out, 'friction.npz'))
