@@ -360,19 +360,19 @@ def _before_tree(rev: str, work: str) -> str:
 
 def heldout(r: dict, d: dict, k: int, urdf: str, names: List[str]) -> dict:
     """Score the saved model on the held-out rest of the trajectory, and a sigmoid model."""
+    from dgp_ros.dynamics.baselines import fit_cv, fit_sigmoid
     from dgp_ros.gp import load_model
     from dgp_ros.online import EstimatorConfig
-    import robot_arms
+    from robot_arms_runs import residual_stream
     model = load_model(r['model_path'])
     te = np.arange(k, len(d['t']), 10)
     Qt, truth = d['qd_true'][te], d['friction'][te]
     nmse = np.mean((model.predict(Qt) - truth) ** 2, axis=0) / np.var(truth, axis=0)
-    Qr, R = robot_arms.residual_stream({'sim': d, 'k': k, 'names': names}, urdf,
-                                       EstimatorConfig())
+    Qr, R = residual_stream({'sim': d, 'k': k, 'names': names}, urdf, EstimatorConfig())
     sig = np.empty_like(truth)
     for j in range(len(names)):
-        cv = robot_arms.fit_cv(Qr[:, j], R[:, j])
-        sig[:, j] = robot_arms.fit_sigmoid(Qr[:, j], R[:, j], cv)['f'](Qt[:, j])
+        cv = fit_cv(Qr[:, j], R[:, j])
+        sig[:, j] = fit_sigmoid(Qr[:, j], R[:, j], cv)['f'](Qt[:, j])
     nmse_sig = np.mean((sig - truth) ** 2, axis=0) / np.var(truth, axis=0)
     X = np.random.default_rng(0).uniform(-3, 3, (100_000, len(names)))
     neg = int(np.sum(np.einsum('ij,ij->i', X, model.predict(X)) < 0))
@@ -405,10 +405,10 @@ def main(argv=None) -> int:
         T = max(float(p.split(':')[1]) for sc in scs for p in sc.phases.split(','))
         d = simulate_arm('panda', max(T, a.duration) / 0.6, seed=7)
         k = int(round(a.duration * 1000))
-        import robot_arms
         from dgp_ros.online import EstimatorConfig
-        _, R = robot_arms.residual_stream({'sim': d, 'k': min(k, len(d['t'])), 'names': names},
-                                          urdf, EstimatorConfig())
+        from robot_arms_runs import residual_stream
+        _, R = residual_stream({'sim': d, 'k': min(k, len(d['t'])), 'names': names}, urdf,
+                               EstimatorConfig())
         rng = np.abs(R).max(axis=0)
         for sc in scs:
             for i in range(a.repeat):

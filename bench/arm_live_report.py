@@ -336,9 +336,9 @@ def targets(by: dict, held: Optional[dict]) -> list:
                     'the learner at the end (the learner carries the cost; the message path '
                     'only pushes a row into the ring)'])
     if held:
-        import robot_arms
+        from robot_arms_runs import NOISE_SD
         trio = zip(held['nmse'], held['nmse_sigmoid'], held['friction_rms'])
-        ok = all(x <= 0.5 * y for x, y, f in trio if f > robot_arms.NOISE_SD)
+        ok = all(x <= 0.5 * y for x, y, f in trio if f > NOISE_SD)
         out.append(['held-out NMSE <= 0.5 x sigmoid on every joint whose friction exceeds '
                     'the noise', _gate(ok), ', '.join(C.fmt(x / y) for x, y in
                                                       zip(held['nmse'], held['nmse_sigmoid']))])
