@@ -32,11 +32,11 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'estimator = dgp_ros.estimator_node:main',
+            'estimator = dgp_ros.nodes.estimator:main',
             'sim_bridge = sim_bridge.node:main',
-            'dgp-arm-sim = dgp_ros.arm_sim_node:main',
-            'dgp-demo = dgp_ros.demo:main',
-            'dgp-replay = dgp_ros.replay:main',
+            'dgp-arm-sim = dgp_ros.nodes.arm_sim:main',
+            'dgp-demo = dgp_ros.apps.demo:main',
+            'dgp-replay = dgp_ros.apps.replay:main',
             'dgp-record = dgp_ros.bags.cli:record_main',
             'dgp-play = dgp_ros.bags.cli:play_main',
         ],

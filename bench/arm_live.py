@@ -44,20 +44,21 @@ import sys
 import tempfile
 import threading
 import time
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
+from arm_live_report import fmt_ms, section, summarize  # noqa: E402
 import common as C  # noqa: E402
+from cpu_watch import CpuWatch, descendants, proc_table  # noqa: E402
 
 from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, simulate_arm  # noqa: E402
 
 SECTION = 'arm_live'
 HERE = os.path.dirname(os.path.abspath(__file__))
 PROCS = os.path.join(HERE, 'live_procs.py')
-CLK = os.sysconf('SC_CLK_TCK')
 
 
 @dataclass
@@ -91,116 +92,18 @@ def _extra(p):
     p.add_argument('--keep', default='', help="keep every process's files in this directory")
 
 
-# ----------------------------------------------------------------------------- CPU accounting
-def _proc_table():
-    """{pid: (ppid, cpu seconds)} of every process now."""
-    out = {}
-    for d in os.listdir('/proc'):
-        if not d.isdigit():
-            continue
-        try:
-            with open(f'/proc/{d}/stat') as f:
-                s = f.read()
-        except OSError:
-            continue
-        rest = s[s.rfind(')') + 2:].split()
-        out[int(d)] = (int(rest[1]), (int(rest[11]) + int(rest[12])) / CLK)
-    return out
-
-
-def _machine_busy() -> float:
-    with open('/proc/stat') as f:
-        v = [int(x) for x in f.readline().split()[1:]]
-    return (sum(v) - v[3] - v[4]) / CLK
-
-
-def _descendants(table, root) -> List[int]:
-    kids: Dict[int, list] = {}
-    for pid, (ppid, _) in table.items():
-        kids.setdefault(ppid, []).append(pid)
-    out, todo = [], [root]
-    while todo:
-        p = todo.pop()
-        for k in kids.get(p, ()):
-            out.append(k)
-            todo.append(k)
-    return out
-
-
-class CpuWatch:
-    """
-    CPU of this benchmark's processes and of the machine over a window (sampled every 0.25 s).
-
-    ``report()``: background cores (the machine's busy time minus ours, over the wall time), and
-    per tracked process (``track``): its own CPU seconds (``cpu_NAME_s``) and its descendants'
-    (``cpu_NAME_kids_s``) within the window. A process that ended between two samples loses at
-    most its last 0.25 s.
-    """
-
-    def __init__(self):
-        self.seen: Dict[int, float] = {}
-        self.first: Dict[int, float] = {}
-        self.roots: Dict[str, int] = {}
-        self.kids: Dict[str, set] = {}
-        self._stop = threading.Event()
-        self._t = None
-
-    def track(self, name: str, pid: int) -> None:
-        self.roots[name] = pid
-        self.kids.setdefault(name, set())
-
-    def start(self) -> None:
-        self.b0, self.w0 = _machine_busy(), time.monotonic()
-        self._sample(first=True)
-        self._t = threading.Thread(target=self._run, daemon=True)
-        self._t.start()
-
-    def _sample(self, first: bool = False) -> None:
-        table = _proc_table()
-        me = os.getpid()
-        for name, root in self.roots.items():
-            self.kids[name].update(_descendants(table, root))
-        for pid in set(_descendants(table, me)) | {me}:
-            cpu = table[pid][1]
-            if pid not in self.first:
-                self.first[pid] = cpu if first else 0.0     # born during the window: from 0
-            self.seen[pid] = max(self.seen.get(pid, 0.0), cpu)
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.25):
-            self._sample()
-
-    def report(self) -> dict:
-        self._sample()
-        self._stop.set()
-        self._t.join()
-        wall = time.monotonic() - self.w0
-        busy = _machine_busy() - self.b0
-
-        def cpu(pids):
-            return sum(self.seen.get(p, 0.0) - self.first.get(p, 0.0) for p in pids)
-        ours = cpu(self.seen)
-        out = {'wall_s': wall, 'bg_cores': max(0.0, (busy - ours) / wall),
-               'machine_cores': busy / wall, 'ours_cores': ours / wall,
-               'load': os.getloadavg()[0]}
-        for name, root in self.roots.items():
-            out[f'cpu_{name}_s'] = cpu([root])
-            out[f'cpu_{name}_kids_s'] = cpu(self.kids[name])
-        return out
-
-
 # ----------------------------------------------------------------------------- one run
 def _learner_pids(est_pid: int) -> List[int]:
     """Return the learner processes: children of the estimator's fork server."""
-    table = _proc_table()
+    table = proc_table()
     out = []
-    for pid in _descendants(table, est_pid):
+    for pid in descendants(table, est_pid):
         try:
             cmd = open(f'/proc/{pid}/cmdline', 'rb').read()
         except OSError:
             continue
         if b'forkserver' in cmd:
-            out.extend(k for k in _descendants(table, pid))
+            out.extend(k for k in descendants(table, pid))
     return out
 
 
@@ -211,7 +114,7 @@ def _killer(est_pid: int, sc: Scenario, t_start: float, seconds: float, ros_env:
     from rclpy.signals import SignalHandlerOptions
     from std_srvs.srv import Trigger
     from diagnostic_msgs.msg import DiagnosticArray
-    from dgp_ros.executor import WaitSetExecutor
+    from dgp_ros.nodes.executor import WaitSetExecutor
     ctx = rclpy.Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO,
                domain_id=int(ros_env['ROS_DOMAIN_ID']))
@@ -405,94 +308,6 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
     return result
 
 
-# ----------------------------------------------------------------------------- numbers
-def _pct(x, q):
-    return float(np.percentile(x, q)) if len(x) else None
-
-
-def summarize(r: dict, rng: np.ndarray) -> dict:
-    """Return the row numbers of one run (ms, %, cores)."""
-    meas, ans, eff = r['lis']['meas'], r['lis']['ans'], r['lis']['effort']
-    pub = r['player']['published']
-    m = dict(zip(meas[:, 0].astype(np.int64), meas[:, 1]))
-    a_t = dict(zip(ans[:, 0].astype(np.int64), ans[:, 1]))
-    paired = sorted(set(m) & set(a_t))
-    lat = np.array([a_t[s] - m[s] for s in paired]) * 1e3
-    age = (ans[:, 1] - ans[:, 0] * 1e-9) * 1e3
-    s = {'published': pub, 'received': len(m), 'answers': len(a_t), 'paired': len(paired),
-         'answered': len(a_t) / pub if pub else 0.0,
-         'lat_p50': _pct(lat, 50), 'lat_p99': _pct(lat, 99),
-         'lat_max': float(lat.max()) if len(lat) else None,
-         'age_p50': _pct(age, 50), 'age_p99': _pct(age, 99),
-         'bg': r['bg_cores'], 'load': r['load'], 'tracebacks': r['tracebacks'],
-         'est_rc': r['est_rc']}
-    if len(eff):
-        s['answer_ratio'] = float(np.max(np.abs(eff[:, :rng.size]) / rng))
-    # the backlog: the answers' age in the middle and the last third of the stream
-    if len(age) > 30:
-        order = np.argsort(ans[:, 0])
-        thirds = np.array_split(age[order], 3)
-        s['age_mid_p50'] = float(np.median(thirds[1]))
-        s['age_last_p50'] = float(np.median(thirds[2]))
-    # the longest silence of the answers while the stream ran (and of the measurements)
-    if len(ans) > 2:
-        t_a = np.sort(ans[:, 1])
-        t_m = np.sort(meas[:, 1]) if len(meas) else t_a
-        inside = (t_a >= t_m[0] + 0.5) & (t_a <= t_m[-1])
-        g = np.diff(t_a[inside]) * 1e3 if inside.sum() > 2 else np.zeros(1)
-        s['ans_gap_max'] = float(g.max())
-        s['meas_gap_max'] = float(np.diff(t_m).max() * 1e3) if len(t_m) > 2 else None
-        # around each kill: from the last answer before it until 0.5 s after the learner was
-        # back (the whole run's longest silence may be elsewhere, e.g. the first model's swap)
-        kg = []
-        for k in r.get('kills', []):
-            t0 = k.get('t_kill')
-            if t0 is None:
-                continue
-            t1 = t0 + (k.get('t_back') or 2.0) + 0.5
-            i0 = max(0, int(np.searchsorted(t_a, t0)) - 1)
-            w = t_a[i0:int(np.searchsorted(t_a, t1))]
-            if len(w) > 1:
-                kg.append(float(np.diff(w).max() * 1e3))
-        if kg:
-            s['kill_gap_max'] = max(kg)
-    d = r['diags'][-1] if r['diags'] else {}
-    s['diag'] = d
-    wall = r['wall_s']
-    s['node_cores'] = r.get('cpu_estimator_s', 0.0) / wall
-    s['learner_cores'] = r.get('cpu_estimator_kids_s', 0.0) / wall     # fork server, learner
-    ec = r['est_cpu']
-    if ec and ec.get('calls'):
-        # from its first message callback to its last (the wrapper in live_procs.py)
-        n = ec.get('received') or int(d.get('messages_received', 0) or 0) or 1
-        s['us_ours'] = ec['callbacks_s'] / n * 1e6
-        s['us_exec'] = (ec['main_thread_s'] - ec['callbacks_s']) / n * 1e6
-        s['us_proc'] = ec['process_s'] / n * 1e6
-    # the diagnostics' inter-arrival (their period is 0.5 s unless the scenario sets it)
-    t_d = np.array([x['t'] for x in r['diags']])
-    if len(t_d) > 2:
-        s['diag_gap_max'] = float(np.diff(t_d).max())          # as the listener got them
-    t_n = np.array(ec.get('diag_times', []) if ec else [])
-    if len(t_n) > 2:
-        s['diag_gap_node'] = float(np.diff(t_n).max())         # as the node sent them
-    for kind, vals in r.get('first_probes', {}).items():
-        s[f'first_{kind}'] = float(vals[0][1]) * 1e3 if vals else None
-    for kind, vals in r['probes'].items():
-        rt = np.array([v[1] for v in vals]) * 1e3
-        if len(rt):
-            s[f'probe_{kind}'] = (len(rt), _pct(rt[np.isfinite(rt)], 50) if np.isfinite(
-                rt).any() else None, _pct(rt[np.isfinite(rt)], 99) if np.isfinite(rt).any()
-                else None, float(rt.max()), int((~np.isfinite(rt)).sum()))
-    if r['kills']:
-        k = r['kills']
-        s['kills'] = len(k)
-        s['kills_mid_refit'] = sum(1 for x in k if x.get('refit_running') == 'True')
-        s['t_fork'] = [x.get('t_fork') for x in k]
-        s['t_back'] = [x.get('t_back') for x in k]
-        s['learner_restarts'] = d.get('learner_restarts')
-    return s
-
-
 # ----------------------------------------------------------------------------- scenarios
 def scenarios(a) -> List[Scenario]:
     q = a.quick
@@ -545,19 +360,19 @@ def _before_tree(rev: str, work: str) -> str:
 
 def heldout(r: dict, d: dict, k: int, urdf: str, names: List[str]) -> dict:
     """Score the saved model on the held-out rest of the trajectory, and a sigmoid model."""
+    from dgp_ros.dynamics.baselines import fit_cv, fit_sigmoid
     from dgp_ros.gp import load_model
     from dgp_ros.online import EstimatorConfig
-    import robot_arms
+    from robot_arms_runs import residual_stream
     model = load_model(r['model_path'])
     te = np.arange(k, len(d['t']), 10)
     Qt, truth = d['qd_true'][te], d['friction'][te]
     nmse = np.mean((model.predict(Qt) - truth) ** 2, axis=0) / np.var(truth, axis=0)
-    Qr, R = robot_arms.residual_stream({'sim': d, 'k': k, 'names': names}, urdf,
-                                       EstimatorConfig())
+    Qr, R = residual_stream({'sim': d, 'k': k, 'names': names}, urdf, EstimatorConfig())
     sig = np.empty_like(truth)
     for j in range(len(names)):
-        cv = robot_arms.fit_cv(Qr[:, j], R[:, j])
-        sig[:, j] = robot_arms.fit_sigmoid(Qr[:, j], R[:, j], cv)['f'](Qt[:, j])
+        cv = fit_cv(Qr[:, j], R[:, j])
+        sig[:, j] = fit_sigmoid(Qr[:, j], R[:, j], cv)['f'](Qt[:, j])
     nmse_sig = np.mean((sig - truth) ** 2, axis=0) / np.var(truth, axis=0)
     X = np.random.default_rng(0).uniform(-3, 3, (100_000, len(names)))
     neg = int(np.sum(np.einsum('ij,ij->i', X, model.predict(X)) < 0))
@@ -565,250 +380,7 @@ def heldout(r: dict, d: dict, k: int, urdf: str, names: List[str]) -> dict:
             'friction_rms': np.sqrt(np.mean(truth ** 2, axis=0)).tolist()}
 
 
-# ----------------------------------------------------------------------------- the section
-def _ms(x):
-    return C.fmt(x) if x is not None else '-'
-
-
-def _gate(ok: Optional[bool]) -> str:
-    return '-' if ok is None else ('met' if ok else '**missed**')
-
-
-def section(a, runs: List[dict], held: Optional[dict], wall: float, names) -> str:
-    lines = [C.header_lines('A 7-joint arm at 1 kHz, live (player -> estimator node -> '
-                            'listener)', 'bench/arm_live.py', a.quick, wall), '',
-             f'A simulated Panda (7 joints and a finger joint, like its driver) published by a '
-             f'player process at absolute deadlines into the `estimator` node (`model=full`, '
-             f'`prior=auto`, `passivity={a.passivity or "default"}`, `inverse_dynamics=urdf`, '
-             f'other parameters default unless the scenario says; its own executor is the '
-             f'wait-set loop unless named) and a listener process, all on this 2-core machine, '
-             f'DDS isolated per run. **bg** is the CPU the machine spent outside these '
-             f'processes during the run (other jobs), in cores of the 2; load is the 1-min '
-             f'load average at the end. Latency: the listener receives the measurement -> it '
-             f"receives the answer; age: the answer received minus the measurement's stamp "
-             f'(its deadline on the wall clock). Answered: answers received / messages '
-             f'published. |answer| / range: the largest |estimate| over the per-joint range of '
-             f'the residual the estimator learns from. CPU us/msg (per message received): ours '
-             f"= in the message callbacks; executor = the rest of the node's main thread; "
-             f'process = every thread of the node process (not the learner).', '']
-    hdr = ['scenario', 'answered', 'latency p50 / p99 / max ms', 'age p50 / p99 ms',
-           '|answer| / range', 'node / learner cores', 'CPU us/msg ours / executor / process',
-           'lost (listener saw / node received)', 'bg cores', 'load']
-    rows = []
-    for r in runs:
-        s = r['sum']
-        d = s['diag']
-        rows.append([r['label'], f'{100 * s["answered"]:.2f} %',
-                     f'{_ms(s["lat_p50"])} / {_ms(s["lat_p99"])} / {_ms(s["lat_max"])}',
-                     f'{_ms(s["age_p50"])} / {_ms(s["age_p99"])}',
-                     C.fmt(s.get('answer_ratio')),
-                     f'{s.get("node_cores", 0):.2f} / {s.get("learner_cores", 0):.2f}',
-                     f'{C.fmt(s.get("us_ours"))} / {C.fmt(s.get("us_exec"))} / '
-                     f'{C.fmt(s.get("us_proc"))}',
-                     f'{s["published"] - s["received"]} / '
-                     f'{d.get("messages_received", "-")} of {s["published"]}',
-                     f'{s["bg"]:.2f}', f'{s["load"]:.2f}'])
-    lines += [C.md_table(hdr, rows), '']
-    by = {}
-    for r in runs:
-        by.setdefault(r['scenario'], []).append(r)
-    # the main scenario in the form the CI smoke test reads
-    if 'khz' in by:
-        r = by['khz'][0]
-        s, d = r['sum'], r['sum']['diag']
-        rows = [['answered (of published)', f'{100 * s["answered"]:.2f} %'],
-                ['received by the listener', f'{s["received"]} of {s["published"]}'],
-                ['end-to-end latency median / p99', f'{_ms(s["lat_p50"])} / '
-                                                    f'{_ms(s["lat_p99"])} ms'],
-                ['estimator: messages received', d.get('messages_received', '-')],
-                ['estimator: messages missing (from stamp gaps)',
-                 d.get('messages_missing', '-')],
-                ['estimator: stamp -> answer median / p99 (s)',
-                 f'{d.get("stamp_to_answer_median_s", "-")} / '
-                 f'{d.get("stamp_to_answer_p99_s", "-")}'],
-                ['estimator: samples learned / refits ok / rejected',
-                 f'{d.get("samples_added", "-")} / {d.get("refits_ok", "-")} / '
-                 f'{d.get("refits_rejected", "-")}'],
-                ['estimator: certified / guarantee', f'{d.get("certified", "-")} / '
-                                                     f'{d.get("guarantee", "-")}'],
-                ['estimator: status at the end', d.get('message', '-')],
-                ['estimator exit status after SIGINT (model saved)', s['est_rc']],
-                ['negative power in 10^5 random velocities',
-                 held['negative_power'] if held else '-']]
-        lines += ['### 1 kHz, the main run', '', C.md_table(['quantity', 'value'], rows), '']
-        if held:
-            lines.append(C.md_table(
-                ['joint', 'held-out NMSE (live model)', 'sigmoid model', 'ratio'],
-                [[j, C.fmt(x), C.fmt(y), C.fmt(x / y)] for j, x, y in
-                 zip(names, held['nmse'], held['nmse_sigmoid'])]))
-    if 'services' in by or 'hog' in by:
-        rows = []
-        for key in ('services', 'hog'):
-            for r in by.get(key, []):
-                s = r['sum']
-                for kind in ('get_parameters', 'refit'):
-                    p = s.get(f'probe_{kind}')
-                    if p:
-                        rows.append([r['label'], kind, p[0], f'{_ms(p[1])} / {_ms(p[2])} / '
-                                     f'{_ms(p[3])}', p[4], _ms(s.get(f'first_{kind}'))])
-                rows.append([r['label'], '/diagnostics (period 0.5 s)', '-',
-                             f'largest interval {C.fmt(s.get("diag_gap_node"))} s sent, '
-                             f'{C.fmt(s.get("diag_gap_max"))} s received', '-', '-'])
-        lines += ['### Services and /diagnostics under the stream', '',
-                  'Round trips from a prober process that does nothing else (`get_parameters` is '
-                  "served by the node's executor alone; `~/refit` is answered by the learner, or "
-                  "after 20 ms by the node saying the request is queued). A client's first "
-                  'call also waits for DDS to match its reply reader with the service: it is '
-                  'shown apart and not counted.', '',
-                  C.md_table(['scenario', 'service', 'calls', 'round trip p50 / p99 / max ms',
-                              'unanswered', 'first call ms'], rows), '']
-    if 'kill' in by:
-        rows = []
-        for r in by['kill']:
-            s = r['sum']
-            fork = [x for x in s.get('t_fork', []) if x is not None]
-            back = [x for x in s.get('t_back', []) if x is not None]
-            rows.append([r['label'], f'{s.get("kills", 0)} ({s.get("kills_mid_refit", 0)})',
-                         f'{_ms(s.get("kill_gap_max"))} / {_ms(s.get("ans_gap_max"))} '
-                         f'(measurements {_ms(s.get("meas_gap_max"))})',
-                         f'{C.fmt(np.median(fork) * 1e3) if fork else "-"} / '
-                         f'{C.fmt(max(fork) * 1e3) if fork else "-"}',
-                         f'{C.fmt(np.median(back)) if back else "-"} / '
-                         f'{C.fmt(max(back)) if back else "-"} ({len(back)} of '
-                         f'{s.get("kills", 0)})', s.get('learner_restarts', '-'),
-                         s['tracebacks'], s['est_rc']])
-        lines += ['### The learner killed mid-refit', '',
-                  'SIGKILL to the learner process 0.2 s after a `~/refit` reply (mid-refit: '
-                  'the refit is running at the kill per the last /diagnostics, period 0.1 s). '
-                  'Back: until /diagnostics (period 0.1 s) shows the restart with the learner '
-                  'alive.', '',
-                  'Longest answer gap: around the kills (from the last answer before one '
-                  'until 0.5 s after the learner was back) / over the whole run after its '
-                  'first 0.5 s.', '',
-                  C.md_table(['scenario', 'kills (mid-refit)',
-                              'longest answer gap ms: kills / run',
-                              'new learner forked median / max ms', 'back median / max s',
-                              'restarts counted', 'tracebacks in its log', 'exit status'],
-                             rows), '']
-    if 'learn_all' in by:
-        rows = []
-        for r in by['learn_all']:
-            s = r['sum']
-            d = s['diag']
-            learned = int(d.get('samples_added', 0) or 0)
-            rows.append([r['label'], d.get('messages_received', '-'), learned,
-                         f'{learned / r["seconds"]:.0f}', d.get('samples_pending', '-'),
-                         f'{d.get("samples_skipped", "-")} / {d.get("samples_outliers", "-")}',
-                         d.get('samples_dropped', '-'), f'{100 * s["answered"]:.2f} %',
-                         f'{s.get("node_cores", 0):.2f}', f'{s.get("learner_cores", 0):.2f}',
-                         C.fmt(s.get('us_ours'))])
-        lines += ['### Every message learned (buffer 500)', '',
-                  "Learned per second of stream: the learner process's `samples_added` at the "
-                  "end over the stream's length (what went in end to end); the ring between "
-                  'the processes drops (and counts) what the learner cannot take.', '',
-                  C.md_table(['scenario', 'messages received', 'samples learned',
-                              'learned / s', 'still in the ring at the end',
-                              'skipped / outliers', 'dropped at the ring', 'answered',
-                              'node cores', 'learner cores', 'message path us/msg'], rows), '']
-    cpu_rows = [r for r in runs if r['scenario'].startswith('cpu_') or r['scenario'] == 'khz']
-    if any(r['scenario'].startswith('cpu_') for r in runs):
-        rows = []
-        for r in cpu_rows:
-            s = r['sum']
-            rows.append([r['label'], C.fmt(s.get('us_exec')), C.fmt(s.get('us_ours')),
-                         C.fmt(s.get('us_proc')), f'{100 * s["answered"]:.2f} %',
-                         f'{s["bg"]:.2f}'])
-        lines += ['### CPU per message on the message path', '',
-                  "Thread CPU of the node's main thread per message received: in the message "
-                  'callbacks (ours: validate, hand over to the learner, answer, publish) and '
-                  'the rest (the executor: waiting, taking, dispatching); process: every '
-                  'thread of the node process (DDS, the snapshot receiver).', '',
-                  C.md_table(['run', 'executor us/msg', 'ours us/msg', 'process us/msg',
-                              'answered', 'bg cores'], rows), '']
-    lines += ['### Targets (issue 23)', '',
-              C.md_table(['target', 'status', 'measured'], targets(by, held)), '']
-    return '\n'.join(lines)
-
-
-def targets(by: dict, held: Optional[dict]) -> list:
-    out = []
-
-    def first(key):
-        return by[key][0]['sum'] if key in by else None
-    s = first('khz')
-    if s:
-        out.append(['1 kHz: >= 99 % answered', _gate(s['answered'] >= 0.99),
-                    f'{100 * s["answered"]:.2f} % (bg {s["bg"]:.2f})'])
-        out.append(['1 kHz: end-to-end p99 <= 5 ms', _gate((s['lat_p99'] or 1e9) <= 5),
-                    f'{_ms(s["lat_p99"])} ms'])
-        out.append(['1 kHz: median <= 2 ms', _gate((s['lat_p50'] or 1e9) <= 2),
-                    f'{_ms(s["lat_p50"])} ms'])
-        out.append(['1 kHz: no answer over 2x the data range',
-                    _gate(s.get('answer_ratio', 1e9) <= 2), C.fmt(s.get('answer_ratio'))])
-    s = first('hz500')
-    if s:
-        out.append(['500 Hz: >= 99.9 % answered', _gate(s['answered'] >= 0.999),
-                    f'{100 * s["answered"]:.2f} % (bg {s["bg"]:.2f})'])
-    s = first('hog')
-    if s:
-        grows = s.get('age_last_p50') is not None and \
-            s['age_last_p50'] > 2 * s['age_mid_p50'] + 20
-        p = s.get('probe_get_parameters')
-        out.append(['one core busy: >= 95 % answered at 1 kHz', _gate(s['answered'] >= 0.95),
-                    f'{100 * s["answered"]:.2f} % (bg {s["bg"]:.2f})'])
-        out.append(['one core busy: no backlog that grows', _gate(not grows),
-                    f'answer age median {_ms(s.get("age_mid_p50"))} ms (middle third) -> '
-                    f'{_ms(s.get("age_last_p50"))} ms (last third)'])
-        out.append(['one core busy: services within 100 ms',
-                    _gate(p is not None and p[3] <= 100 and not p[4]),
-                    f'get_parameters max {_ms(p[3]) if p else "-"} ms'])
-    s = first('services')
-    if s:
-        for kind in ('get_parameters', 'refit'):
-            p = s.get(f'probe_{kind}')
-            out.append([f'flood: {kind} answered within 100 ms',
-                        _gate(p is not None and p[3] <= 100 and not p[4]),
-                        f'max {_ms(p[3]) if p else "-"} ms, unanswered {p[4] if p else "-"}'])
-        out.append(['flood: /diagnostics within 100 ms of its period',
-                    _gate(s.get('diag_gap_node', 9) <= 0.6),
-                    f'largest interval {C.fmt(s.get("diag_gap_node"))} s sent by the node, '
-                    f'{C.fmt(s.get("diag_gap_max"))} s received (period 0.5 s)'])
-    s = first('kill')
-    if s:
-        back = [x for x in s.get('t_back', []) if x is not None]
-        out.append(['learner SIGKILL x10: answers never stop > 50 ms',
-                    _gate(s.get('kill_gap_max', 1e9) <= 50),
-                    f'{_ms(s.get("kill_gap_max"))} ms around the kills '
-                    f'({_ms(s.get("ans_gap_max"))} ms over the whole run)'])
-        out.append(['learner SIGKILL x10: back within 2 s',
-                    _gate(len(back) == s.get('kills') and max(back) <= 2.0),
-                    f'max {C.fmt(max(back)) if back else "-"} s, {len(back)} of '
-                    f'{s.get("kills")}'])
-        out.append(['learner SIGKILL x10: no traceback', _gate(s['tracebacks'] == 0),
-                    str(s['tracebacks'])])
-    s = by.get('learn_all')
-    if s:
-        r = s[0]
-        d = r['sum']['diag']
-        learned = int(d.get('samples_added', 0) or 0) / r['seconds']
-        queued = int(d.get('samples_pending', 0) or 0)
-        # a 1 kHz stream is the ceiling: kept up = (almost) all of it learned, nothing queued
-        # (the first residual trails its message by the filter's half window, 0.05 s)
-        out.append(['every message learned at buffer 500: >= 1000 msg/s end to end',
-                    _gate(learned >= 990 and queued < 100),
-                    f'{learned:.0f} msg/s learned of a 1 kHz stream, {queued} still queued for '
-                    'the learner at the end (the learner carries the cost; the message path '
-                    'only pushes a row into the ring)'])
-    if held:
-        import robot_arms
-        trio = zip(held['nmse'], held['nmse_sigmoid'], held['friction_rms'])
-        ok = all(x <= 0.5 * y for x, y, f in trio if f > robot_arms.NOISE_SD)
-        out.append(['held-out NMSE <= 0.5 x sigmoid on every joint whose friction exceeds '
-                    'the noise', _gate(ok), ', '.join(C.fmt(x / y) for x, y in
-                                                      zip(held['nmse'], held['nmse_sigmoid']))])
-    return out
-
-
+# ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     a = C.parse_args(__doc__.split('\n\n')[0], argv, _extra)
     os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')     # the killer's node too
@@ -833,10 +405,10 @@ def main(argv=None) -> int:
         T = max(float(p.split(':')[1]) for sc in scs for p in sc.phases.split(','))
         d = simulate_arm('panda', max(T, a.duration) / 0.6, seed=7)
         k = int(round(a.duration * 1000))
-        import robot_arms
         from dgp_ros.online import EstimatorConfig
-        _, R = robot_arms.residual_stream({'sim': d, 'k': min(k, len(d['t'])), 'names': names},
-                                          urdf, EstimatorConfig())
+        from robot_arms_runs import residual_stream
+        _, R = residual_stream({'sim': d, 'k': min(k, len(d['t'])), 'names': names}, urdf,
+                               EstimatorConfig())
         rng = np.abs(R).max(axis=0)
         for sc in scs:
             for i in range(a.repeat):
@@ -850,7 +422,7 @@ def main(argv=None) -> int:
                 r['sum'] = summarize(r, rng)
                 s = r['sum']
                 C.log(f'arm_live: {sc.name}: answered {100 * s["answered"]:.2f} %, latency '
-                      f'p50 {_ms(s["lat_p50"])} p99 {_ms(s["lat_p99"])} ms, ours/exec '
+                      f'p50 {fmt_ms(s["lat_p50"])} p99 {fmt_ms(s["lat_p99"])} ms, ours/exec '
                       f'{C.fmt(s.get("us_ours"))}/{C.fmt(s.get("us_exec"))} us/msg, bg '
                       f'{s["bg"]:.2f}')
                 if sc.heldout and held is None and r['model_path']:

@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common as C  # noqa: E402
-import robot_arms  # noqa: E402,I100
+from robot_arms_runs import make_data, residual_stream  # noqa: E402
 
 NAME = 'arm_offline'
 TITLE = 'A 7-joint arm offline: hyper-parameter learning and passivity modes'
@@ -44,8 +44,8 @@ def arm_data(duration: float, n: int, seed: int = 0):
     from dgp_ros.dynamics import example_robot_urdf
     from dgp_ros.online import EstimatorConfig
     work = tempfile.mkdtemp(prefix='dgp_arm_offline_')
-    D = robot_arms.make_data('panda', duration, seed, work)
-    Q, R = robot_arms.residual_stream(D, example_robot_urdf('panda'), EstimatorConfig())
+    D = make_data('panda', duration, seed, work)
+    Q, R = residual_stream(D, example_robot_urdf('panda'), EstimatorConfig())
     idx = np.unique(np.linspace(0, len(Q) - 1, min(n, len(Q))).round().astype(int))
     return Q[idx], R[idx], D['Qh'], D['Fh'], D['names']
 

@@ -11,14 +11,14 @@ The processes of bench/arm_live.py, one role each: player, listener, prober, est
   probing services under the stream from a process that has nothing else to do (a client's first
   call, which also waits for DDS to match its reply reader, is saved apart as ``first``):
   ``/dgp_estimator/get_parameters`` (served by the executor alone) and ``~/refit`` (served by
-  the learner). It uses the node's own wait-set executor (``dgp_ros.executor``) with batch
+  the learner). It uses the node's own wait-set executor (``dgp_ros.nodes.executor``) with batch
   handlers, about 30 us of Python per message, so that it is not the bottleneck it would be with
   rclpy's SingleThreadedExecutor (0.5 ms per message, two messages per answer).
-* ``estimator``: ``dgp_ros.estimator_node.main`` of whatever tree PYTHONPATH names, with the
-  message callbacks timed (thread CPU, re-entry counted once): at exit it writes its main
-  thread's CPU and the process's from the first message callback to the end of the last, and
-  the callbacks' share, as JSON (``--cpu-out``): the same split for the code before and after
-  a change.
+* ``estimator``: ``dgp_ros.nodes.estimator.main`` (``dgp_ros.estimator_node`` in older trees)
+  of whatever tree PYTHONPATH names, with the message callbacks timed (thread CPU, re-entry
+  counted once): at exit it writes its main thread's CPU and the process's from the first
+  message callback to the end of the last, and the callbacks' share, as JSON (``--cpu-out``):
+  the same split for the code before and after a change.
 * ``hog``: one busy loop (another process keeping a core busy).
 
 Each writes its results when it gets SIGINT or SIGTERM (``--out``), and ``--ready`` once set up.
@@ -135,7 +135,7 @@ def listener(a) -> None:
     from rcl_interfaces.srv import GetParameters
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
-    from dgp_ros.executor import set_batch_handler, WaitSetExecutor
+    from dgp_ros.nodes.executor import set_batch_handler, WaitSetExecutor
     ctx = rclpy.Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(f'arm_live_{a.role}', context=ctx)
@@ -223,7 +223,10 @@ def listener(a) -> None:
 # ----------------------------------------------------------------------------- estimator
 def estimator(a, ros_args) -> int:
     """Run the node of the tree on PYTHONPATH with its message callbacks timed."""
-    from dgp_ros import estimator_node as E
+    try:
+        from dgp_ros.nodes import estimator as E
+    except ImportError:             # a --before-rev tree from before the nodes/ folder
+        from dgp_ros import estimator_node as E
     st = {'cb_ns': 0, 'calls': 0, 'depth': 0, 'node': None, 'main0': None, 'proc0': None,
           'main1': 0, 'proc1': 0.0}
 

@@ -123,7 +123,7 @@ def a320_part(a):
     """Replay an A320 approach bag with the defaults and hand-picked settings."""
     from dgp_ros.bags import write_joint_state_bag
     from dgp_ros.online import EstimatorConfig
-    from dgp_ros.replay import replay, summarize
+    from dgp_ros.apps.replay import replay, summarize
     from sim_bridge import SimConfig, simulate_approach
     data = simulate_approach(SimConfig(), max_time_s=60.0 if a.quick else None)
     names = list(data['joint_names'])

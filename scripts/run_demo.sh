@@ -6,4 +6,4 @@ cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh
 # one BLAS thread per process: small matrices, several processes (see dgp_ros/__init__.py)
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
-exec .venv/bin/python -m dgp_ros.demo "$@"
+exec .venv/bin/python -m dgp_ros.apps.demo "$@"

@@ -16,4 +16,12 @@ if [ ! -f "$stamp" ] || ! cmp -s requirements.txt "$stamp"; then
   .venv/bin/python -m pip install -q -r requirements.txt
   .venv/bin/python -m pip install -q --no-deps --no-build-isolation -e .
   cp requirements.txt "$stamp"
+  cp setup.py .venv/.dgp_ros_setup_py
+fi
+# the console scripts of the editable install name the modules that setup.py gives them:
+# reinstall the package (only) when setup.py changed
+if ! cmp -s setup.py .venv/.dgp_ros_setup_py; then
+  echo "[setup] setup.py changed: reinstalling the package (console scripts)"
+  .venv/bin/python -m pip install -q --no-deps --no-build-isolation -e .
+  cp setup.py .venv/.dgp_ros_setup_py
 fi

@@ -18,8 +18,8 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
-from dgp_ros.node_runtime import (check_unknown_overrides, declare_parameters, help_text,
-                                  reject_unknown, run)
+from dgp_ros.nodes.runtime import (check_unknown_overrides, declare_parameters, help_text,
+                                   reject_unknown, run)
 from dgp_ros.params import ParamSpec
 
 from .config import DEFAULT_WIND_AMPLITUDE, DEFAULT_WIND_FREQUENCY, DEFAULT_WIND_PHASE, SimConfig

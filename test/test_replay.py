@@ -14,8 +14,8 @@ import time
 import numpy as np
 import pytest
 
+from dgp_ros.apps.replay import build_config, main as replay_main, replay, run
 from dgp_ros.bags import write_joint_state_bag
-from dgp_ros.replay import build_config, main as replay_main, replay, run
 
 JS = 'sensor_msgs/msg/JointState'
 
@@ -90,7 +90,7 @@ def test_live_and_played_bag_equal_offline_replay(tmp_path, storage):
     from sensor_msgs.msg import JointState
 
     from dgp_ros.bags.ros import Player, Recorder
-    from dgp_ros.estimator_node import EstimatorNode
+    from dgp_ros.nodes.estimator import EstimatorNode
 
     n = 44                   # <= the node's input queue depth (50): nothing can be dropped
     names = ['alpha', 'beta', 'airspeed']

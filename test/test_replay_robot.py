@@ -14,10 +14,10 @@ import time
 import numpy as np
 import pytest
 
+from dgp_ros.apps.replay import main as replay_main
 from dgp_ros.bags import write_joint_state_bag
 from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, friction_truth, simulate_arm
 from dgp_ros.gp import load_model
-from dgp_ros.replay import main as replay_main
 
 NAMES = list(ARM_JOINTS['panda'])
 
@@ -121,8 +121,8 @@ def test_sigint_leaves_partial_csv_and_summary(panda_bag, tmp_path):
                PYTHONPATH=os.pathsep.join([str(tmp_path)] + [
                    p for p in [os.environ.get('PYTHONPATH')] if p]))
     # the interruption is the point, not the model: Diag-D-GP with a fixed prior learns fast
-    cmd = [sys.executable, '-m', 'dgp_ros.replay', str(bag), '--out', str(out), '--model', 'diag',
-           '--joints', ','.join(NAMES), '--set', 'min_sample_interval_s=0.0', '--no-plots',
+    cmd = [sys.executable, '-m', 'dgp_ros.apps.replay', str(bag), '--out', str(out), '--model',
+           'diag', '--joints', ','.join(NAMES), '--set', 'min_sample_interval_s=0.0', '--no-plots',
            '--set', 'prior=friction', '--set', 'inverse_dynamics=python:gate_plugin:tau_rb']
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     csv_file = out / 'estimates.csv'

@@ -1,5 +1,5 @@
 """
-The robot demo's evaluation (dgp_ros/robot_report.py) on a small run, without DDS.
+The robot demo's evaluation (dgp_ros/apps/robot_report.py) on a small run, without DDS.
 
 A listener record is made up (every measurement answered 2 ms later by a passive model); the
 saved model is a small Full-D-GP. Checks the numbers and the figures, and that a model with
@@ -35,7 +35,7 @@ def run(tmp_path_factory):
     from dgp_ros.dynamics import example_robot_urdf
     from dgp_ros.dynamics.arm_stream import demo_arm
     from dgp_ros.gp import FullDGP
-    from dgp_ros import robot_report
+    from dgp_ros.apps import robot_report
     d = demo_arm('panda', 4.0, seed=2, base_hz=0.25)
     k = int(np.searchsorted(d['t'], 2.4))
     model = FullDGP(prior='friction')

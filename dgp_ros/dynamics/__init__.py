@@ -10,8 +10,11 @@ anywhere in this package, and pinocchio only when a URDF model is built.
   sample it is paired with (no lag; the output trails the input by the half window);
 - ``residual``: :class:`FrictionResidual`, ``effort - tau_rb`` per wanted sample;
 - ``arm_sim``: simulated Panda / UR5 data with known friction and bias (tests, demo);
-- ``realistic``: friction outside the estimator's prior family and a payload the URDF lacks.
+- ``realistic``: friction outside the estimator's prior family and a payload the URDF lacks;
+- ``conservative``: the correction of the rigid-body model learned beside the damping force;
+  importing this package registers it with ``dgp_ros.gp``, which rebuilds it from model files.
 """
+from . import conservative  # noqa: F401 - registers the correction kind a saved model may carry
 from .arm_sim import (ARM_JOINTS, example_robot_urdf, FRICTION_TABLES, friction_truth,
                       negative_power_fraction, simulate_arm)
 from .filter import AccelFilter, AccelSample, DEFAULT_HALF_WINDOW_S

@@ -27,6 +27,8 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
+from dgp_ros.gp.persistence import register_correction
+
 __all__ = ['RegressorBasis', 'PotentialBasis', 'correction_basis', 'basis_from_dict',
            'Correction']
 
@@ -188,8 +190,11 @@ class Correction:
     """
     What the residual holds besides the damping force: ``dV/dq(q) + offsets`` (N m).
 
-    ``basis`` None: offsets only. ``theta`` (C,), ``offsets`` (N,).
+    ``basis`` None: offsets only. ``theta`` (C,), ``offsets`` (N,). A saved model carries it
+    as a record of ``kind``, which this module registers with ``dgp_ros.gp``'s model files.
     """
+
+    kind = 'conservative'
 
     def __init__(self, basis, theta: np.ndarray, offsets: np.ndarray):
         self.basis = basis
@@ -210,10 +215,14 @@ class Correction:
         return np.einsum('knc,c->kn', self.basis.deploy(Q), self.theta) + self.offsets
 
     def to_dict(self) -> dict:
-        return {'basis': None if self.basis is None else self.basis.to_dict(),
+        return {'kind': self.kind, 'basis': None if self.basis is None else self.basis.to_dict(),
                 'theta': self.theta.tolist(), 'offsets': self.offsets.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> 'Correction':
         basis = None if d.get('basis') is None else basis_from_dict(d['basis'])
         return cls(basis, np.asarray(d['theta'], float), np.asarray(d['offsets'], float))
+
+
+# a model file's correction of this kind is rebuilt here (dgp_ros.gp imports no layer above it)
+register_correction(Correction.kind, Correction.from_dict)

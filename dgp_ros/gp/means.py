@@ -155,6 +155,34 @@ def _tanh_over(v: np.ndarray, eps: np.ndarray) -> np.ndarray:
     return np.where(small, 1.0 / eps * np.ones_like(a), out)
 
 
+def _friction_diag(a: np.ndarray, coef: np.ndarray, eps: np.ndarray,
+                   vs: np.ndarray) -> np.ndarray:
+    """
+    ``m_d`` of smoothed Coulomb + viscous + Stribeck friction at speeds ``a = |v|`` (..., N).
+
+    ``m_d(a) = F_v + sum_k F_k t(a, eps_k) + sum_s S_s t(a, eps_S) exp(-(a / vs_s)^2)`` with
+    ``t(a, e) = tanh(a / e) / a``. coef (N, 1 + K + S): ``[F_v, F_1..F_K, S_1..S_S]``; eps
+    (K + 1,) or (N, K + 1): the Coulomb smoothing velocities, then the Stribeck one ``eps_S``;
+    vs (S,) or (N, S): the Stribeck velocities. Every ``t`` comes from one vectorized call (the
+    message path evaluates this for every answer); the terms are added one at a time in this
+    order, so the result is the same to the bit as adding them in a loop.
+    """
+    K = eps.shape[-1] - 1
+    S = vs.shape[-1]
+    out = np.zeros_like(a) + coef[:, 0]
+    if K == 0 and not S:
+        return out
+    T = _tanh_over(a[..., None], eps)                                 # (..., N, K + 1)
+    for k in range(K):
+        out = out + coef[:, 1 + k] * T[..., k]
+    if S:
+        t = T[..., K]
+        G = np.exp(-(a[..., None] / vs) ** 2)                           # (..., N, S)
+        for s in range(S):
+            out = out + coef[:, 1 + K + s] * t * G[..., s]
+    return out
+
+
 class FrictionMean(PriorMean):
     """
     Coulomb + viscous (+ Stribeck) per joint; see the module docstring.
@@ -226,12 +254,9 @@ class FrictionMean(PriorMean):
         return self
 
     def _diag_at(self, a: np.ndarray) -> np.ndarray:
-        """``m_d`` at speeds ``a = |v|`` (..., N)."""
-        t = _tanh_over(a, self.eps)
-        out = self.coef[:, 0] + self.coef[:, 1] * t
-        if self.stribeck:
-            out = out + self.coef[:, 2] * t * np.exp(-(a / self.v_s) ** 2)
-        return out
+        """``m_d`` at speeds ``a = |v|`` (..., N): one Coulomb term and one Stribeck term."""
+        vs = self.v_s[:, None] if self.stribeck else np.empty((self.coef.shape[0], 0))
+        return _friction_diag(a, self.coef, np.stack((self.eps, self.eps), axis=1), vs)
 
     def diag(self, Qd):
         return self._diag_at(np.abs(Qd))
@@ -297,22 +322,8 @@ class BasisFrictionMean(PriorMean):
         return self
 
     def _diag_at(self, a: np.ndarray) -> np.ndarray:
-        # every basis function in one vectorized call (the message path evaluates this for
-        # every answer: one call per basis function cost ~18 us each); the terms are added in
-        # the same order as one at a time, so the result is the same to the bit
-        K = self.eps.size
-        out = self.coef[:, 0] + 0.0 * a
-        if K == 0 and not self.vs.size:
-            return out
-        T = _tanh_over(a[..., None], np.append(self.eps, self.eps_s))      # (..., N, K + 1)
-        for k in range(K):
-            out = out + self.coef[:, 1 + k] * T[..., k]
-        if self.vs.size:
-            t = T[..., K]
-            G = np.exp(-(a[..., None] / self.vs) ** 2)                       # (..., N, S)
-            for s in range(self.vs.size):
-                out = out + self.coef[:, 1 + K + s] * t * G[..., s]
-        return out
+        """``m_d`` at speeds ``a = |v|`` (..., N): the shared eps and vs of every joint."""
+        return _friction_diag(a, self.coef, np.append(self.eps, self.eps_s), self.vs)
 
     def diag(self, Qd):
         return self._diag_at(np.abs(Qd))

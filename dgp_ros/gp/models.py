@@ -23,7 +23,7 @@ from .hyper import apply_fixed_noise, hyper_from_params, initial_hyper, learn_hy
 from .kernels import KINDS, Structure
 from .means import make_mean, PriorMean, PRIORS
 from .passivity import check_mode, policy_class
-from .persistence import read_model, save_model
+from .persistence import read_model, rebuild_correction, save_model
 from .policy import Certificate, PolicyOptions
 from .posterior import Posterior
 
@@ -333,6 +333,8 @@ class _DGP:
         The damping force ``predict(qd)`` plus the learned conservative correction of the
         rigid-body model ``dV/dq(q)`` and the offsets (``correction_``, set by the online
         learner; none for a model fitted directly). ``q`` is needed when the correction uses it.
+        A loaded model's correction needs its owner imported (``dgp_ros.dynamics``; else
+        ValueError saying so: ``persistence``).
         """
         if qd is None:
             raise ValueError('predict_residual needs qd (velocities, k x N)')
@@ -486,9 +488,9 @@ def load_model(path) -> _DGP:
         model = model_class(f.kind)(**f.params)
         model._restore(f.posterior, f.policy, f.policy_arrays, f.certificate)
         if f.correction is not None:
-            # the correction's bases live with the robot front end (a URDF needs pinocchio)
-            from dgp_ros.dynamics.conservative import Correction
-            model.correction_ = Correction.from_dict(f.correction)
+            # rebuilt by the layer that owns its kind (the robot front end: a URDF needs
+            # pinocchio), through the registry it fills (``persistence``)
+            model.correction_ = rebuild_correction(f.correction)
     except Exception as exc:      # a crafted header: wrong names, types or policy state
         raise ValueError(f'{path}: malformed model file ({type(exc).__name__}: {exc})') \
             from None

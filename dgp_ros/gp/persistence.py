@@ -17,6 +17,14 @@ Reading trusts nothing in the file:
 * the certificate is never taken from the file: a structural certificate is marked *stale*
   (``certified`` False until ``recertify()`` re-proves it); the cheap ones are recomputed;
 * every failure is a ``ValueError`` with a reason.
+
+A model may carry a *correction* besides its damping force (the online learner's conservative
+correction of a rigid-body model, ``correction_``). Its record is saved by kind and rebuilt by
+the module that owns the kind, which registers it here when imported (``register_correction``:
+``dgp_ros.dynamics`` registers 'conservative'); this package imports none of them. A model whose
+correction's owner is not imported loads all the same (its damping force needs no correction):
+the record is kept as a :class:`SavedCorrection`, saved back unchanged, and evaluating it
+(``predict_residual``) raises ValueError naming the module to import.
 """
 from __future__ import annotations
 
@@ -37,7 +45,8 @@ from .means import mean_from_dict
 from .posterior import Hyper, Posterior
 
 __all__ = ['save_model', 'read_model', 'ModelFile', 'is_model_file', 'FORMAT_VERSION',
-           'MAX_JOINTS', 'MAX_SAMPLES']
+           'MAX_JOINTS', 'MAX_SAMPLES', 'register_correction', 'rebuild_correction',
+           'SavedCorrection']
 
 FORMAT_VERSION = 2
 MAX_JOINTS = 64
@@ -287,3 +296,62 @@ def _upgrade_v1(header: dict, arrays: dict, kind: str, N: int):
         if k in arrays:
             arrays['pol_' + k] = arrays.pop(k)
     return header, arrays
+
+
+# ------------------------------------------------------------------------ saved corrections
+#: rebuilders of the corrections a model file may carry, by kind (``register_correction``)
+_CORRECTIONS: dict = {}
+#: the module that registers each kind the package writes (named in an error, never imported)
+_OWNERS = {'conservative': 'dgp_ros.dynamics'}
+
+
+def register_correction(kind: str, from_dict) -> None:
+    """
+    Let model files carry corrections of ``kind``, rebuilt by ``from_dict(record)``.
+
+    A correction is what a model's ``correction_`` holds besides the damping force:
+    ``correction(Q)`` at poses Q (k, N), or None when it does not use them, gives (k, N) N m,
+    and ``correction.to_dict()`` its JSON record, with its ``kind``. The module that owns a kind
+    registers it when imported (module docstring).
+    """
+    _CORRECTIONS[str(kind)] = from_dict
+
+
+def _kind(record: dict) -> str:
+    # a record without a kind was written before kinds were recorded: the conservative one
+    return str(record.get('kind', 'conservative'))
+
+
+def rebuild_correction(record: dict):
+    """Rebuild a saved correction by its kind; a :class:`SavedCorrection` if none is registered."""
+    from_dict = _CORRECTIONS.get(_kind(record))
+    return SavedCorrection(record) if from_dict is None else from_dict(record)
+
+
+class SavedCorrection:
+    """
+    A saved correction whose owner is not imported: kept as its record, rebuilt when called.
+
+    ``save`` writes the record back unchanged; calling it (``predict_residual``) rebuilds it
+    through the registry once its owner has been imported, and raises ValueError naming that
+    module before.
+    """
+
+    def __init__(self, record: dict):
+        self.record = record
+        self._built = None
+
+    def __call__(self, Q=None) -> np.ndarray:
+        """Return the correction at poses Q (k, N), (k, N) N m (see ``register_correction``)."""
+        if self._built is None:
+            kind = _kind(self.record)
+            from_dict = _CORRECTIONS.get(kind)
+            if from_dict is None:
+                owner = _OWNERS.get(kind, 'the module that defines it')
+                raise ValueError(f'this model carries a {kind!r} correction of the rigid-body '
+                                 f'model; import {owner} (which rebuilds it) to evaluate it')
+            self._built = from_dict(self.record)
+        return self._built(Q)
+
+    def to_dict(self) -> dict:
+        return self.record

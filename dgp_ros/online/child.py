@@ -1,15 +1,19 @@
 """
 The learner process's loop (no rclpy): samples in from the ring, snapshots and replies out.
 
-Run by :func:`dgp_ros.online.process._child_main` in the child. One thread takes every sample
-waiting in the ring, feeds them to the :class:`~dgp_ros.online.learner.Learner` (whose refit and
-re-proof jobs run in a thread of their own beside it), answers commands, and sends a snapshot
-whenever the learner's version changed (at most every ``SNAPSHOT_PERIOD_S``), its status, and the
-residual samples it completed. It stops on a 'stop' command or when the node's pipe closes.
+Run by :func:`child_main`, the entry point of the child that
+:class:`~dgp_ros.online.process.LearnerProcess` starts (this module does not import that one).
+One thread takes every sample waiting in the ring, feeds them to the
+:class:`~dgp_ros.online.learner.Learner` (whose refit and re-proof jobs run in a thread of their
+own beside it), answers commands, and sends a snapshot whenever the learner's version changed (at
+most every ``SNAPSHOT_PERIOD_S``), its status, and the residual samples it completed. It stops on
+a 'stop' command or when the node's pipe closes.
 """
 from __future__ import annotations
 
 import dataclasses
+import os
+import signal
 import time
 import traceback
 
@@ -19,11 +23,11 @@ from .config import EstimatorConfig
 from .learner import Learner
 from .ring import SampleRing
 
-__all__ = ['LearnerLoop']
+__all__ = ['LearnerLoop', 'child_main']
 
 
 class LearnerLoop:
-    """One learner process's work (module docstring); arguments as ``process._child_main``."""
+    """One learner process's work (module docstring); arguments as ``child_main``."""
 
     IDLE_WAIT_S = 0.002
     #: no sample for this long: the stream has paused (a stale certificate is re-proven)
@@ -32,11 +36,14 @@ class LearnerLoop:
     ROUND_S = 0.01
     #: longest catch-up before a command that must see the samples sent before it (s)
     DRAIN_S = 0.05
+    #: snapshots back to the node: at most one per period (s), and at most this many bytes/s
+    SNAPSHOT_PERIOD_S = 0.02
+    SNAPSHOT_BYTES_PER_S = 100e6
+    #: the status is sent at least this often (s)
+    STATUS_PERIOD_S = 0.25
 
     def __init__(self, cfg: dict, cmd, out, lock, ring_info, init, variance: bool,
                  residuals: bool):
-        from .process import LearnerProcess
-        self.P = LearnerProcess
         self.cmd, self.out, self.lock = cmd, out, lock
         self.variance, self.residuals = variance, residuals
         self.ring = None
@@ -45,7 +52,7 @@ class LearnerLoop:
         self.sent_at = self.status_at = 0.0
         self.row_s = 1e-4               # learning seconds per sample (moving average)
         self.sample_at = time.monotonic()   # when the last samples were taken from the ring
-        self.period = self.P.SNAPSHOT_PERIOD_S
+        self.period = self.SNAPSHOT_PERIOD_S
         try:
             config = dataclasses.replace(EstimatorConfig.from_dict(cfg), refit_mode='async')
             self.learner = Learner(config)
@@ -141,7 +148,7 @@ class LearnerLoop:
                 self.sent_version, self.sent_at = snap.version, now
                 n, N = (0, 0) if snap.model is None else snap.model.posterior_.X.shape
                 size = 8.0 * n * N * (4 + (n if self.variance else 0))
-                self.period = max(self.P.SNAPSHOT_PERIOD_S, size / self.P.SNAPSHOT_BYTES_PER_S)
+                self.period = max(self.SNAPSHOT_PERIOD_S, size / self.SNAPSHOT_BYTES_PER_S)
         if self.waits and not L.refit_running() and L.version == self.sent_version:
             self.out.send(('status', L.status()))        # arrives before the reply
             self.status_at = now
@@ -156,7 +163,7 @@ class LearnerLoop:
                 else:
                     keep.append((i, deadline))
             self.waits = keep
-        if now - self.status_at >= self.P.STATUS_PERIOD_S:
+        if now - self.status_at >= self.STATUS_PERIOD_S:
             self.out.send(('status', L.status()))
             self.status_at = now
 
@@ -222,3 +229,17 @@ class LearnerLoop:
     @staticmethod
     def _config(d: dict) -> EstimatorConfig:
         return dataclasses.replace(EstimatorConfig.from_dict(d), refit_mode='async')
+
+
+def child_main(cfg: dict, cmd, out, lock, ring_info, init, nice: int, variance: bool,
+               residuals: bool) -> None:
+    """Run a Learner on the ring's samples: the child process (module docstring)."""
+    # Ctrl-C and a SIGTERM to the process group are the node's to handle: it saves through
+    # this process, then stops it. The child ends when the node's pipe closes (the node died).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        os.nice(nice)
+    except OSError:
+        pass
+    LearnerLoop(cfg, cmd, out, lock, ring_info, init, variance, residuals).run()

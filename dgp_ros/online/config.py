@@ -245,7 +245,7 @@ def defaults_yaml() -> str:
     """
     import json
     import textwrap
-    lines = ['# Parameters of the dgp_estimator node (dgp_ros/estimator_node.py), generated from',
+    lines = ['# Parameters of the dgp_estimator node (dgp_ros/nodes/estimator.py), generated from',
              '# dgp_ros.online.config.PARAMS; regenerate with',
              '#   python -c "import dgp_ros.online.config as c; '
              'print(c.defaults_yaml(), end=\'\')"'

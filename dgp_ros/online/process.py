@@ -9,8 +9,8 @@ message path uses, and runs a real ``Learner`` in a child process at a lower sch
 * the child sends back immutable snapshots (``Learner.snapshot(frozen=True)``: a predict-only
   model, pickled) at most every ``SNAPSHOT_PERIOD_S``, and less often when they are large (the
   Cholesky factors for the variance are ``8 N n^2`` bytes: at most ``SNAPSHOT_BYTES_PER_S``),
-  its status every ``STATUS_PERIOD_S``, and the friction residual samples it completed; a
-  receiver thread here installs them by reference assignment;
+  its status every ``STATUS_PERIOD_S`` (``child.LearnerLoop``), and the friction residual
+  samples it completed; a receiver thread here installs them by reference assignment;
 * commands (refit, save, reset, reconfigure, ...) go through a pipe and are answered by id.
 
 The child is forked from a fork server started by a fresh interpreter (``forkserver``, with the
@@ -36,6 +36,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from .child import child_main
 from .config import EstimatorConfig
 from .ring import SampleRing
 
@@ -76,9 +77,6 @@ class LearnerProcess:
     RING_ROWS = 1 << 15                 # 33 s of a 1 kHz stream
     START_TIMEOUT_S = 120.0             # the first start also starts the fork server
     REPLY_TIMEOUT_S = 30.0
-    SNAPSHOT_PERIOD_S = 0.02
-    SNAPSHOT_BYTES_PER_S = 100e6
-    STATUS_PERIOD_S = 0.25
 
     def __init__(self, config: EstimatorConfig, nice: int = 10):
         self.config = config
@@ -124,7 +122,7 @@ class LearnerProcess:
         out_r, out_w = ctx.Pipe(duplex=False)
         cfg = dataclasses.asdict(self.config)
         ring_info = None if ring is None else (ring.name, ring.width, ring.capacity)
-        proc = ctx.Process(target=_child_main, name='dgp_learner', daemon=True,
+        proc = ctx.Process(target=child_main, name='dgp_learner', daemon=True,
                            args=(cfg, cmd_r, out_w, lock, ring_info, init, self.nice,
                                  self._variance, self._want_residuals))
         proc.start()
@@ -436,18 +434,3 @@ def _describe_exit(code) -> str:
         except ValueError:
             return f'killed by signal {-code}'
     return f'exit code {code}'
-
-
-def _child_main(cfg: dict, cmd, out, lock, ring_info, init, nice: int, variance: bool,
-                residuals: bool) -> None:
-    """Run a Learner on the ring's samples: the child process (module docstring)."""
-    # Ctrl-C and a SIGTERM to the process group are the node's to handle: it saves through
-    # this process, then stops it. The child ends when the node's pipe closes (the node died).
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    try:
-        os.nice(nice)
-    except OSError:
-        pass
-    from .child import LearnerLoop
-    LearnerLoop(cfg, cmd, out, lock, ring_info, init, variance, residuals).run()

@@ -22,7 +22,17 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-__all__ = ['Buffer', 'Selector']
+__all__ = ['Buffer', 'Selector', 'robust_scale']
+
+
+def robust_scale(A: np.ndarray) -> tuple:
+    """(median, 1.4826 x median absolute deviation), floored; (N,) each, of rows A (n, N)."""
+    if A.shape[0] == 0:
+        return np.zeros(A.shape[1]), np.ones(A.shape[1])
+    med = np.median(A, axis=0)
+    mad = 1.4826 * np.median(np.abs(A - med), axis=0)
+    floor = 1e-3 * (np.abs(A).mean(axis=0) + 1e-3)
+    return med, np.maximum(mad, floor)
 
 
 class Buffer:
@@ -80,9 +90,7 @@ class Buffer:
 
     def _init_distances(self) -> None:
         Q = self._q
-        med = np.median(Q, axis=0)
-        mad = 1.4826 * np.median(np.abs(Q - med), axis=0)
-        self.scale = np.maximum(mad, 1e-3 * (np.abs(Q).mean(axis=0) + 1e-3))
+        self.scale = robust_scale(Q)[1]
         Z = Q / self.scale
         sq = np.einsum('ij,ij->i', Z, Z)
         d = np.sqrt(np.maximum(sq[:, None] + sq[None, :] - 2.0 * Z @ Z.T, 0.0))
@@ -201,23 +209,13 @@ class Selector:
         last = self.last_added_stamp
         return dt > 0 and last is not None and last <= stamp < last + dt * (1.0 - 1e-9)
 
-    @staticmethod
-    def robust_scale(A: np.ndarray) -> tuple:
-        """(median, 1.4826 x median absolute deviation), floored; (N,) each."""
-        if A.shape[0] == 0:
-            return np.zeros(A.shape[1]), np.ones(A.shape[1])
-        med = np.median(A, axis=0)
-        mad = 1.4826 * np.median(np.abs(A - med), axis=0)
-        floor = 1e-3 * (np.abs(A).mean(axis=0) + 1e-3)
-        return med, np.maximum(mad, floor)
-
     def _robust_stats(self, buf: Buffer):
         st = self._stats
         every = max(self.STATS_EVERY, buf.capacity // 20)
         if st is None or self.additions - st[1] >= every or buf.size < st[0] or \
                 buf.size < 2 * self.STATS_EVERY and buf.size != st[0]:
             Q, T = buf.rows_unordered()
-            st = (buf.size, self.additions) + self.robust_scale(Q) + self.robust_scale(T)
+            st = (buf.size, self.additions) + robust_scale(Q) + robust_scale(T)
             self._stats = st
         return st[2:]
 

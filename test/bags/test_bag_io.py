@@ -26,7 +26,8 @@ PKG = Path(bags.__file__).resolve().parents[1]
 
 # ------------------------------------------------------------------------- no rclpy, ever
 @pytest.mark.parametrize('module', ['dgp_ros.bags', 'dgp_ros.bags.io', 'dgp_ros.bags.joint_states',
-                                    'dgp_ros.messages', 'dgp_ros.bags.cli', 'dgp_ros.replay'])
+                                    'dgp_ros.messages', 'dgp_ros.bags.cli', 'dgp_ros.apps.replay',
+                                    'dgp_ros.replay'])
 def test_import_does_not_load_rclpy(module):
     code = (f'import sys, {module}\n'
             "bad = sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy')\n"

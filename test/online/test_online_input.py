@@ -334,7 +334,7 @@ def test_node_rejects_and_counts_malformed_joint_states_over_dds():
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
 
-    from dgp_ros.estimator_node import EstimatorNode
+    from dgp_ros.nodes.estimator import EstimatorNode
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)

@@ -12,7 +12,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
-from dgp_ros.arm_sim_node import ArmSimNode  # noqa: E402
+from dgp_ros.nodes.arm_sim import ArmSimNode  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -13,8 +13,8 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 @pytest.mark.ros
 def test_demo_synthetic_runs_and_writes_outputs(tmp_path):
     out = tmp_path / 'demo'
-    p = subprocess.run([sys.executable, '-m', 'dgp_ros.demo', '--synthetic', '--duration', '12',
-                        '--buffer-size', '60', '--out', str(out), '--timeout', '150'],
+    p = subprocess.run([sys.executable, '-m', 'dgp_ros.apps.demo', '--synthetic', '--duration',
+                        '12', '--buffer-size', '60', '--out', str(out), '--timeout', '150'],
                        cwd=REPO, capture_output=True, text=True, timeout=200)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     assert 'dgp_ros demo summary' in p.stdout and 'NMSE' in p.stdout

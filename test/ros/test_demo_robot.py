@@ -30,7 +30,7 @@ def _gone(pid: int) -> bool:
 @pytest.mark.timeout(400)
 def test_robot_demo_quick_writes_the_held_out_numbers(tmp_path):
     out = tmp_path / 'demo_panda'
-    p = subprocess.run([sys.executable, '-m', 'dgp_ros.demo', '--robot', 'panda', '--quick',
+    p = subprocess.run([sys.executable, '-m', 'dgp_ros.apps.demo', '--robot', 'panda', '--quick',
                         '--out', str(out), '--timeout', '300'], cwd=REPO, capture_output=True,
                        text=True, timeout=380)
     assert p.returncode == 0, p.stdout[-4000:] + p.stderr[-3000:]
@@ -77,7 +77,7 @@ def test_driver_stream_layout_and_timing():
 
 
 def test_robot_demo_arguments():
-    from dgp_ros.robot_demo import estimator_command, parse_args
+    from dgp_ros.apps.robot_demo import estimator_command, parse_args
     a = parse_args(['--robot', 'ur5', '--quick'])
     assert a.duration == 10.0 and a.out == os.path.join('out', 'demo_ur5')
     cmd = ' '.join(estimator_command('ur5', '/x.urdf', ['a', 'b'], '/m.npz'))
@@ -90,7 +90,7 @@ def test_robot_demo_arguments():
 
 
 def test_readme_runs_the_robot_demo_with_one_command_and_keeps_two_setup_commands():
-    from dgp_ros.robot_demo import parse_args
+    from dgp_ros.apps.robot_demo import parse_args
     text = open(os.path.join(REPO, 'README.md')).read()
     two = text.split('## Two commands', 1)[1].split('```bash', 1)[1].split('```', 1)[0]
     assert [ln.split('#')[0].strip() for ln in two.strip().splitlines()] == [
@@ -98,5 +98,5 @@ def test_readme_runs_the_robot_demo_with_one_command_and_keeps_two_setup_command
     robot = re.search(r'^bash scripts/run_demo\.sh (--robot \S+)', text, re.M)
     assert robot, 'no robot demo command in the README'
     assert parse_args(robot.group(1).split()).robot == 'panda'
-    assert 'exec .venv/bin/python -m dgp_ros.demo "$@"' in open(
+    assert 'exec .venv/bin/python -m dgp_ros.apps.demo "$@"' in open(
         os.path.join(REPO, 'scripts', 'run_demo.sh')).read()       # arguments pass through

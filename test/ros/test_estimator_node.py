@@ -14,9 +14,9 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from dgp_ros.estimator_node import EstimatorNode  # noqa: E402
-from dgp_ros.executor import WaitSetExecutor  # noqa: E402
-from dgp_ros.node_runtime import _executor  # noqa: E402
+from dgp_ros.nodes.estimator import EstimatorNode  # noqa: E402
+from dgp_ros.nodes.executor import WaitSetExecutor  # noqa: E402
+from dgp_ros.nodes.runtime import _executor  # noqa: E402
 from dgp_ros.online import EstimatorConfig  # noqa: E402
 
 pytestmark = pytest.mark.ros

@@ -1,5 +1,5 @@
 """
-``dgp_ros.executor.WaitSetExecutor``, the node's default executor, checked functionally.
+``dgp_ros.nodes.executor.WaitSetExecutor``, the node's default executor, checked functionally.
 
 Services and timers are served, a subscription with a batch handler gets its waiting messages
 in one call with their message infos (publication sequence numbers), one without gets rclpy's
@@ -16,7 +16,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import Int32  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from dgp_ros.executor import DeferredResponse, set_batch_handler, WaitSetExecutor  # noqa: E402,E501
+from dgp_ros.nodes.executor import DeferredResponse, set_batch_handler, WaitSetExecutor  # noqa: E402,E501
 
 pytestmark = pytest.mark.ros
 

@@ -20,7 +20,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, simulate_arm  # noqa: E402
-from dgp_ros.estimator_node import EstimatorNode  # noqa: E402
+from dgp_ros.nodes.estimator import EstimatorNode  # noqa: E402
 
 pytestmark = pytest.mark.ros
 NAMES = list(ARM_JOINTS['panda'])

@@ -21,7 +21,7 @@ publishes, for every accepted measurement, stamped like it:
 
 ``/diagnostics`` every ``diagnostics_period_s``; services ``~/refit``, ``~/reset``,
 ``~/save_model`` (std_srvs/Trigger). SIGINT/SIGTERM: the model is saved (``model_path``) and the
-process exits 0 (``node_runtime``).
+process exits 0 (``nodes.runtime``).
 """
 from __future__ import annotations
 
@@ -42,10 +42,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
-from dgp_ros.executor import DeferredResponse, WaitSetExecutor
 from dgp_ros.messages import joint_state_sample
-from dgp_ros.node_runtime import (check_unknown_overrides, declare_parameters, help_text,
-                                  reject_unknown, run, set_batch_handler)
+from dgp_ros.nodes.executor import DeferredResponse, WaitSetExecutor
+from dgp_ros.nodes.runtime import (check_unknown_overrides, declare_parameters, help_text,
+                                   reject_unknown, run, set_batch_handler)
 from dgp_ros.online import ERROR, EstimatorConfig, OK, OnlineEstimator, WARN
 from dgp_ros.online.config import NODE_PARAMS, PARAMS
 
@@ -136,7 +136,7 @@ class EstimatorNode(Node):
         qos_in = QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
                             reliability=ReliabilityPolicy.BEST_EFFORT)
         self.sub = self._subscribe_state(qos_in)
-        # the wait-set executor (node_runtime) hands over every message waiting at once
+        # the wait-set executor (nodes.runtime) hands over every message waiting at once
         set_batch_handler(self.sub, self._on_states, self.MAX_BATCH)
         # a wake-up answers up to MAX_BATCH messages at once: the history of every per-message
         # output holds a few such bursts (a reliable reader gets all of them)

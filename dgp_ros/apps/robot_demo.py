@@ -3,7 +3,7 @@ Robot demo: ``dgp-demo --robot panda`` (or ``ur5``), a robot user's first hour, 
 
 Three OS processes over real DDS (a random ROS_DOMAIN_ID, localhost-only discovery):
 
-1. ``arm_sim`` (``dgp_ros.arm_sim_node``): a Panda or UR5 with realistic friction (outside the
+1. ``arm_sim`` (``dgp_ros.nodes.arm_sim``): a Panda or UR5 with realistic friction (outside the
    estimator's prior family), a payload its URDF does not have, sensor bias and noise and
    jittered 1 kHz stamps publishes raw ``/joint_states`` like its driver (the Panda's finger
    joints too), at real time, for the first 60 % of the run;
@@ -16,7 +16,7 @@ When the stream ends the estimator gets SIGINT and saves its model; the saved mo
 on the held-out last 40 % of the run (a part of the path the arm has not travelled) against the
 true friction, next to the Makkar sigmoid and Coulomb-viscous models fitted by least squares on
 the residual stream of the same 60 %. Summary, ``summary.json`` and plots go to ``--out``
-(``dgp_ros.robot_report``). Children are always stopped on exit (SIGINT, SIGTERM, SIGKILL).
+(``dgp_ros.apps.robot_report``). Children are always stopped on exit (SIGINT, SIGTERM, SIGKILL).
 """
 from __future__ import annotations
 
@@ -27,6 +27,8 @@ import signal
 import struct
 import sys
 import time
+
+from dgp_ros.apps.children import Children, console, isolated_env, listener
 
 LEARN_FRACTION = 0.6
 
@@ -127,22 +129,16 @@ class Progress:
         self.stream.flush()
 
 
-def _console(name: str, module: str) -> list:
-    """Return the console script next to this interpreter, else ``python -m module``."""
-    exe = os.path.join(os.path.dirname(sys.executable), name)
-    return [exe] if os.access(exe, os.X_OK) else [sys.executable, '-m', module]
-
-
 def estimator_command(robot: str, urdf: str, joints, model_path: str) -> list:
     """Return the estimator as a robot user starts it: URDF, joints, model file, else defaults."""
-    return _console('estimator', 'dgp_ros.estimator_node') + [
+    return console('estimator', 'dgp_ros.nodes.estimator') + [
         '--ros-args', '-r', 'generalized_state:=/joint_states',
         '-p', 'inverse_dynamics:=urdf', '-p', f'urdf_file:={urdf}',
         '-p', f'joints:={json.dumps(list(joints))}', '-p', f'model_path:={model_path}']
 
 
 def sim_command(a, learn_s: float) -> list:
-    return [sys.executable, '-m', 'dgp_ros.arm_sim_node', '--ros-args',
+    return [sys.executable, '-m', 'dgp_ros.nodes.arm_sim', '--ros-args',
             '-p', f'robot:={a.robot}', '-p', f'duration_s:={float(a.duration)}',
             '-p', f'max_sim_time_s:={float(learn_s)}', '-p', f'seed:={int(a.seed)}',
             '-p', f'payload_kg:={float(a.payload_kg)}', '-p', f'friction:={a.friction}',
@@ -188,19 +184,13 @@ def parse_args(argv=None):
 
 
 def main(argv=None) -> int:
-    from dgp_ros.demo import _spawn, _stop, isolated_env
     a = parse_args(argv)
     os.makedirs(a.out, exist_ok=True)
     t_start = time.monotonic()
     env = isolated_env()
     print(f'[demo] {a.robot}: ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]} (localhost only); output in '
           f'{a.out}', flush=True)
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
     from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf
-    from dgp_ros.dynamics.arm_stream import demo_arm, DriverStream
-    from dgp_ros import robot_report
 
     learn_s = LEARN_FRACTION * a.duration
     model_path = os.path.abspath(os.path.join(a.out, 'friction.npz'))
@@ -208,21 +198,25 @@ def main(argv=None) -> int:
         os.remove(model_path)
     joints = ARM_JOINTS[a.robot]
     urdf = example_robot_urdf(a.robot)
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = ex = est = sim = None
+    with listener('dgp_demo_listener') as (node, ex):
+        return _run(a, env, node, ex, learn_s, model_path, joints, urdf, t_start)
+
+
+def _run(a, env: dict, node, ex, learn_s: float, model_path: str, joints, urdf: str,
+         t_start: float) -> int:
+    """Start the estimator and the arm, listen, stop, score the saved model; the exit status."""
+    from dgp_ros.apps import robot_report
+    from dgp_ros.dynamics.arm_stream import demo_arm, DriverStream
+    kids = Children(env, a.out)
     code = 0
     try:
-        node = rclpy.create_node('dgp_demo_listener', context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
         lis = Listener(node)
-        est = _spawn(estimator_command(a.robot, urdf, joints, model_path), env,
-                     os.path.join(a.out, 'estimator.log'))
+        est = kids.start('estimator', estimator_command(a.robot, urdf, joints, model_path),
+                         grace=30.0)
         print(f'[demo] started estimator (pid {est.pid}): inverse_dynamics=urdf, '
               f'urdf_file={urdf}, joints={list(joints)}, model_path={model_path}, other '
               'parameters default', flush=True)
-        sim = _spawn(sim_command(a, learn_s), env, os.path.join(a.out, 'arm_sim.log'))
+        sim = kids.start('arm_sim', sim_command(a, learn_s), grace=10.0)
         print(f'[demo] started arm_sim (pid {sim.pid}): {a.robot}, {a.friction} friction, '
               f'{a.duration:g} s run at 1 kHz; streams the first {learn_s:g} s at real-time '
               f'factor {a.real_time_factor:g} once both subscribers are up', flush=True)
@@ -249,7 +243,7 @@ def main(argv=None) -> int:
         bar.update(max(lis.meas) * 1e-9 if lis.meas else 0.0, _progress_text(lis), final=True)
         _settle(ex, lis, a.settle, est)
         t_stop = time.monotonic()
-        rc = _stop(est, 'estimator', grace=60.0)
+        rc = kids.stop('estimator', grace=60.0)
         print(f'[demo] estimator stopped with SIGINT (exit {rc}) in '
               f'{time.monotonic() - t_stop:.1f} s; model {model_path}', flush=True)
         if rc != 0 or not os.path.exists(model_path):
@@ -277,13 +271,7 @@ def main(argv=None) -> int:
         print(f'\n[demo] error: {exc}', flush=True)
         code = 1
     finally:
-        _stop(sim, 'arm_sim', grace=10.0)
-        _stop(est, 'estimator', grace=30.0)
-        if ex is not None:
-            ex.shutdown()
-        if node is not None:
-            node.destroy_node()
-        ctx.try_shutdown()
+        kids.close()                                # the arm first, then the estimator
     return code
 
 

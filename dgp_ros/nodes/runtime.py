@@ -31,7 +31,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
-from dgp_ros.executor import set_batch_handler, WaitSetExecutor
+from dgp_ros.nodes.executor import set_batch_handler, WaitSetExecutor
 
 __all__ = ['declare_parameters', 'unknown_overrides', 'reject_unknown', 'help_text', 'run',
            'WaitSetExecutor', 'set_batch_handler', 'EXECUTORS']

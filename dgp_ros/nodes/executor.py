@@ -5,7 +5,7 @@ rclpy's SingleThreadedExecutor spends 350 to 740 us of CPU per message on its ow
 1 kHz (it rebuilds its wait set on every ``spin_once`` and wraps each callback in a task); its
 EventsExecutor queues one event per received message, unbounded, and serves timers and services
 behind that queue (seconds late under a flood). :class:`WaitSetExecutor` is the loop the node
-needs and nothing more (``node_runtime`` chooses it by default; ``DGP_EXECUTOR`` selects
+needs and nothing more (``nodes.runtime`` chooses it by default; ``DGP_EXECUTOR`` selects
 another); docs/BENCHMARKS.md (``arm_live``) measures the three.
 """
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """
-The robot demo's numbers and plots (``dgp_ros.robot_demo``): pure numpy/scipy/matplotlib.
+The robot demo's numbers and plots (``dgp_ros.apps.robot_demo``): pure numpy/scipy/matplotlib.
 
 :func:`evaluate` scores the estimator's saved model on the held-out part of the run: NMSE per
 joint of ``model.predict`` at the true velocities against the true friction, of

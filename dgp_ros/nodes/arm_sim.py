@@ -22,7 +22,7 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
 
 from dgp_ros.dynamics.arm_stream import demo_arm, DriverStream
-from dgp_ros.node_runtime import check_unknown_overrides, declare_parameters, help_text, run
+from dgp_ros.nodes.runtime import check_unknown_overrides, declare_parameters, help_text, run
 from dgp_ros.params import check_spec, ParamSpec
 
 SPECS = [

@@ -1,5 +1,5 @@
 """
-End-to-end demo: ``python -m dgp_ros.demo`` (scripts/run_demo.sh, the README's main job).
+End-to-end demo: ``python -m dgp_ros.apps.demo`` (scripts/run_demo.sh, the README's main job).
 
 Starts ``sim_bridge`` (JSBSim A320 approach in periodic wind) and the ``dgp_estimator`` as two OS
 processes talking over real DDS (random ROS_DOMAIN_ID, localhost-only discovery), flies the whole
@@ -10,7 +10,7 @@ plots and ``summary.json`` into ``--out`` (default ``out/demo``).
 
 ``--synthetic`` replaces sim_bridge by an in-process publisher of a known passive damping law
 (no JSBSim needed; used by the tests). ``--robot panda|ur5`` runs the robot demo instead: a
-simulated arm publishing raw ``/joint_states`` into the estimator (``dgp_ros.robot_demo``).
+simulated arm publishing raw ``/joint_states`` into the estimator (``dgp_ros.apps.robot_demo``).
 Children are always terminated on exit (SIGINT, then SIGTERM, then SIGKILL; on Linux they also
 die with this process).
 """
@@ -19,70 +19,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import signal
-import subprocess
 import sys
 import time
 from typing import Dict, List, Optional
 
 import numpy as np
 
+from dgp_ros.apps.children import Children, isolated_env, listener
 from dgp_ros.gp import KINDS, PASSIVITY_MODES
 from dgp_ros.gp.passivity import describe_modes
-
 from dgp_ros.messages import joint_state_sample
 
 OUT_NAMES = ['alpha', 'beta', 'airspeed']
-
-
-def _die_with_parent():                         # runs in the child before exec (Linux only)
-    try:
-        import ctypes
-        ctypes.CDLL('libc.so.6', use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
-    except Exception:
-        pass
-
-
-def _spawn(cmd: List[str], env: dict, log_path: str) -> subprocess.Popen:
-    log = open(log_path, 'w')
-    return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
-                            preexec_fn=_die_with_parent if sys.platform.startswith('linux')
-                            else None)
-
-
-def _stop(proc: Optional[subprocess.Popen], name: str, grace: float = 30.0) -> Optional[int]:
-    """SIGINT (clean ROS shutdown, the estimator saves its model), then SIGTERM, then SIGKILL."""
-    if proc is None:
-        return None
-    for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-        if proc.poll() is not None:
-            break
-        proc.send_signal(sig)
-        try:
-            proc.wait(wait)
-        except subprocess.TimeoutExpired:
-            print(f'[demo] {name} did not stop on {sig.name}', flush=True)
-    return proc.poll()
-
-
-def isolated_env() -> dict:
-    """
-    Isolate this process and its children on DDS; return the children's environment.
-
-    A random ROS_DOMAIN_ID in 1..101 and localhost-only discovery, set in ``os.environ`` too
-    (before this process creates a context); unbuffered child output.
-    """
-    env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 101))
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env.pop('ROS_LOCALHOST_ONLY', None)
-    env.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
-    env['PYTHONUNBUFFERED'] = '1'
-    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
-                                           'RMW_IMPLEMENTATION')})
-    os.environ.pop('ROS_LOCALHOST_ONLY', None)
-    return env
 
 
 class _Recorder:
@@ -286,14 +235,14 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if any(x == '--robot' or x.startswith('--robot=') for x in argv):
-        from dgp_ros import robot_demo
+        from dgp_ros.apps import robot_demo
         return robot_demo.main(argv)
     ap = argparse.ArgumentParser(prog='dgp-demo', description=__doc__.split('\n\n')[0],
                                  epilog='The robot demo: dgp-demo --robot panda|ur5 [--quick] '
                                  '(options: dgp-demo --robot panda --help).')
     ap.add_argument('--robot', choices=('panda', 'ur5'),
                     help='run the robot demo instead (a simulated arm publishing raw '
-                    '/joint_states, see dgp_ros/robot_demo.py)')
+                    '/joint_states, see dgp_ros/apps/robot_demo.py)')
     ap.add_argument('--out', default='out/demo', help='output folder (plots, summary.json, logs)')
     ap.add_argument('--rate-hz', type=float, default=60.0, help='simulation output rate')
     ap.add_argument('--real-time-factor', type=float, default=2.0,
@@ -316,10 +265,7 @@ def main(argv=None) -> int:
     print(f'[demo] ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]} (localhost only); output in {args.out}',
           flush=True)
 
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    est_cmd = [sys.executable, '-m', 'dgp_ros.estimator_node', '--ros-args',
+    est_cmd = [sys.executable, '-m', 'dgp_ros.nodes.estimator', '--ros-args',
                '-p', f'model:={args.model}', '-p', f'passivity:={args.passivity}',
                # the aircraft: the paper's viscous prior, no offsets (defaults are for arms)
                '-p', 'prior:=viscous', '-p', 'bias:=false',
@@ -330,17 +276,20 @@ def main(argv=None) -> int:
                '-p', f'rate_hz:={float(args.rate_hz)}',
                '-p', f'real_time_factor:={float(args.real_time_factor)}',
                '-p', 'loop:=false', '-p', f'max_sim_time_s:={float(args.max_sim_time)}']
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = ex = est_proc = sim_proc = None
-    code = 0
     t_start = time.monotonic()
+    with listener('dgp_demo_recorder') as (node, ex):
+        return _run(args, env, node, ex, est_cmd, sim_cmd, t_start)
+
+
+def _run(args, env: dict, node, ex, est_cmd: List[str], sim_cmd: List[str],
+         t_start: float) -> int:
+    """Start the estimator and the simulator, listen to the run, report; the exit status."""
+    kids = Children(env, args.out)
+    sim_proc = None
+    code = 0
     try:
-        node = rclpy.create_node('dgp_demo_recorder', context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
         rec = _Recorder(node)
-        est_proc = _spawn(est_cmd, env, os.path.join(args.out, 'estimator.log'))
+        est_proc = kids.start('estimator', est_cmd, grace=30.0)
         print(f'[demo] started estimator (pid {est_proc.pid}): model={args.model} '
               f'passivity={args.passivity} buffer={args.buffer_size}', flush=True)
         deadline = time.monotonic() + 60
@@ -358,7 +307,7 @@ def main(argv=None) -> int:
             print(f'[demo] synthetic publisher: {args.duration:.0f} s at {args.rate_hz:g} Hz',
                   flush=True)
         else:
-            sim_proc = _spawn(sim_cmd, env, os.path.join(args.out, 'sim_bridge.log'))
+            sim_proc = kids.start('sim_bridge', sim_cmd, grace=10.0)
             finished = lambda: sim_proc.poll() is not None  # noqa: E731
             print(f'[demo] started sim_bridge (pid {sim_proc.pid}): A320 approach at '
                   f'{args.rate_hz:g} Hz, real-time factor {args.real_time_factor:g}', flush=True)
@@ -411,15 +360,9 @@ def main(argv=None) -> int:
         print(f'[demo] error: {exc}', flush=True)
         code = 1
     finally:
-        _stop(sim_proc, 'sim_bridge', grace=10.0)
-        rc = _stop(est_proc, 'estimator', grace=30.0)
+        rc = kids.close().get('estimator')          # the simulator first
         if rc not in (0, None, -signal.SIGINT):
             print(f'[demo] estimator exit status {rc}', flush=True)
-        if ex is not None:
-            ex.shutdown()
-        if node is not None:
-            node.destroy_node()
-        ctx.try_shutdown()
     return code
 
 

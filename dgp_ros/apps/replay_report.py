@@ -1,7 +1,7 @@
 """
 What ``dgp-replay`` writes: the estimates as CSV, the summary, the plots (no rclpy, no DDS).
 
-The replay itself (bag in, estimates out) is :mod:`dgp_ros.replay`; this module turns its
+The replay itself (bag in, estimates out) is :mod:`dgp_ros.apps.replay`; this module turns its
 estimates (a list of :class:`dgp_ros.online.Estimate`) and the estimator into files.
 
 The files ``dgp-replay --out DIR`` writes to ``DIR``:
