@@ -44,7 +44,7 @@ import common as C  # noqa: E402
 from certification import _extra, panda_dir  # noqa: E402,I100,I201
 
 NAME = 'ledger'
-TITLE = 'Accuracy ledger: the A320 and the arm with the node\'s defaults (issue 30)'
+TITLE = "Accuracy ledger: the A320 and the arm with the node's defaults (issue 30)"
 A320_EARLY_S = 20.0
 SPLIT_S = 7.5
 SIM_S = 20.0
@@ -113,7 +113,7 @@ def a320_case(flight: dict, **params) -> dict:
 
 def panda_real_case(path: str) -> dict:
     """
-    The real Panda split (module docstring); ``path``: the shared ``panda_real`` folder.
+    Score the real Panda split (module docstring); ``path``: the shared ``panda_real`` folder.
 
     Returns ``nmse`` (7,), ``mean``, ``sigmoid`` (7,), ``ratio`` (mean over the sigmoid's mean),
     ``wall_s``.
@@ -151,7 +151,7 @@ def panda_real_case(path: str) -> dict:
 
 def panda_sim_case(duration_s: float = SIM_S, seed: int = 0) -> dict:
     """
-    The simulated Panda (module docstring): held-out NMSE against the true friction.
+    Score the simulated Panda (module docstring): held-out NMSE against the true friction.
 
     Returns ``nmse`` (7,), ``geo`` (geometric mean), ``worst``, ``wall_s``. The answers are
     computed without the variance and the damping matrix (as the node computes them while
@@ -223,14 +223,14 @@ def report(a, A, P, S, table, wall, history) -> str:
     rows = [r for r in history if r and r[0] != rev] + [_row(rev, A, P, S)]
     lim = LIMITS
     lines = [C.header_lines(TITLE, 'bench/ledger.py', a.quick, wall), '',
-             'The node\'s defaults (certified, prior auto) in line (`refit_mode=sync`, the node\'s '
-             'learner, deterministic). A320: sim_bridge\'s approach, '
+             "The node's defaults (certified, prior auto) in line (`refit_mode=sync`, the node's "
+             "learner, deterministic). A320: sim_bridge's approach, "
              f'{A["flight_s"]:.1f} s at 60 Hz, each message answered before it is learned (one '
              'step ahead), NMSE per output. Real Panda: learn t < 7.5 s of the shared log, the '
-             'saved model\'s `predict_residual` held out on 7.5-12.6 s against the reference '
-             'residual. Simulated Panda: the robot demo\'s arm (friction outside the prior\'s '
+             "saved model's `predict_residual` held out on 7.5-12.6 s against the reference "
+             "residual. Simulated Panda: the robot demo's arm (friction outside the prior's "
              f'family, payload), learn on {100 * SIM_LEARN:.0f} % of {SIM_S:.0f} s at 1 kHz, the '
-             'saved model held out against the true friction. The ledger\'s tests '
+             "saved model held out against the true friction. The ledger's tests "
              '(`test/test_accuracy_ledger.py`, default suite) fail beyond: A320 first 20 s '
              f'{" / ".join(C.fmt(x) for x in lim["a320_early"])}, whole flight '
              f'{" / ".join(C.fmt(x) for x in lim["a320_whole"])}; real Panda mean '
