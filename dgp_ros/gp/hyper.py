@@ -84,13 +84,14 @@ def apply_fixed_noise(hp: Hyper, noise) -> None:
     hp.log_sn2 = np.log((nz / hp.sy) ** 2)
 
 
-def _bounds(structure: Structure, X: np.ndarray, m: int):
+def _bounds(structure: Structure, X: np.ndarray, m: int, noise_floor: float = MIN_NOISE_VAR):
     """
     L-BFGS-B bounds of output m's parameter vector (see ``LmlObjective``).
 
     Standardized units: residual RMS 1 and |x| ~ 1, so sf2 ~ 1 and lengthscales of order the
     data spread; the absolute floor 1e-2 (1 % of the RMS velocity) keeps a fit on a short stretch
-    of data from learning lengthscales nothing later can be compared with.
+    of data from learning lengthscales nothing later can be compared with. The noise variance is
+    at least ``noise_floor`` (standardized units).
     """
     spread = np.std(X, axis=0)
     spread = np.where(spread > 1e-6, spread, 1.0)
@@ -100,7 +101,7 @@ def _bounds(structure: Structure, X: np.ndarray, m: int):
         for d in range(X.shape[1]):
             lo = max(0.02 * spread[d], 1e-2)
             b.append((math.log(lo), math.log(max(1e3 * spread[d], 10 * lo))))
-    b.append((math.log(MIN_NOISE_VAR), math.log(10.0)))
+    b.append((math.log(noise_floor), math.log(10.0)))
     return b
 
 
@@ -329,7 +330,8 @@ UNTIE_LOG_SF2_FLOOR = -4.6
 def learn_hyper(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarray, *,
                 fix_noise: bool = False, n_restarts: int = 2, max_samples: int = 300,
                 random_state: int = 0, maxiter: int = 200, warm: bool = False,
-                schedule: str = 'untied', refine_iter: int = 200) -> tuple:
+                schedule: str = 'untied', refine_iter: int = 200,
+                noise_floor: float = MIN_NOISE_VAR) -> tuple:
     """
     Maximize the log marginal likelihood of each output, starting from ``hp``.
 
@@ -343,7 +345,8 @@ def learn_hyper(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarr
     the starts optimize one lengthscale vector shared by the output's elements (one exp per
     evaluation), then every element's own lengthscales are refined from the best of them
     (``log sf2 >= -4.6`` meanwhile, so a switched-off element can return); cheaper, but it
-    reached a lower likelihood on the simulated arm (docs/BENCHMARKS.md).
+    reached a lower likelihood on the simulated arm (docs/BENCHMARKS.md). ``noise_floor``: the
+    least noise variance, standardized units (``MIN_NOISE_VAR`` by default).
 
     Returns ``(hyper, info)``; ``info`` holds the LML per output (standardized units) and the
     number of objective evaluations.
@@ -369,7 +372,7 @@ def learn_hyper(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarr
         Em = len(rows)
         elems = [structure.elems[e][1] for e in rows]
         fun = LmlObjective(X, Rall[:, m], elems, N)
-        bounds = _bounds(structure, X, m)
+        bounds = _bounds(structure, X, m, noise_floor)
         if fix_noise:
             bounds[-1] = (theta0[-1], theta0[-1])
             for k in kicks:

@@ -19,7 +19,8 @@ from typing import Optional
 import numpy as np
 
 from ._validation import as_box, as_matrix, as_pair, in_chunks
-from .hyper import apply_fixed_noise, hyper_from_params, initial_hyper, learn_hyper, scales
+from .hyper import (apply_fixed_noise, hyper_from_params, initial_hyper, learn_hyper,
+                    MIN_NOISE_VAR, scales)
 from .kernels import KINDS, Structure
 from .means import make_mean, PriorMean, PRIORS
 from .passivity import check_mode, policy_class
@@ -47,6 +48,11 @@ class _DGP:
         damping matrix to certify).
     noise : float or (N,) array or None
         Fixed noise standard deviation per output, force units; None = learn it.
+    noise_floor : float or None
+        Least noise variance the fit may learn, in units of the residual's variance (None:
+        ``hyper.MIN_NOISE_VAR``, 1e-6). Forces that depend on more than ``qd`` (hidden states),
+        seen along a densely sampled path, drive the likelihood to near-zero noise and
+        lengthscales too short to predict the next sample; a floor keeps them smooth.
     window : int or None
         Keep at most this many samples; ``update`` drops the oldest beyond it.
     n_restarts : int
@@ -88,9 +94,10 @@ class _DGP:
                  blend_width: float = 0.1, max_boxes: int = 50000, projection_weights=None,
                  hyperparams: Optional[dict] = None, random_state: int = 0,
                  operating_domain=None, prior: str = 'viscous', bias: bool = False,
-                 warm_start: bool = False):
+                 warm_start: bool = False, noise_floor: Optional[float] = None):
         self.passivity = passivity
         self.noise = noise
+        self.noise_floor = noise_floor
         self.window = window
         self.n_restarts = n_restarts
         self.max_opt_samples = max_opt_samples
@@ -134,6 +141,9 @@ class _DGP:
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < low:
                 raise ValueError(f'{name} must be an integer >= {low}, got {v!r}')
+        nf = self.noise_floor
+        if nf is not None and not (isinstance(nf, (int, float)) and 0 < nf <= 1.0):
+            raise ValueError(f'noise_floor must be in (0, 1] or None, got {nf!r}')
         if not (self.domain_margin >= 0 and self.blend_width > 0):
             raise ValueError('domain_margin must be >= 0 and blend_width > 0')
         if not isinstance(self.prior, PriorMean) and self.prior not in PRIORS:
@@ -194,7 +204,8 @@ class _DGP:
                                        n_restarts=int(self.n_restarts),
                                        max_samples=int(self.max_opt_samples),
                                        random_state=int(self.random_state),
-                                       warm=bool(self.warm_start) and start is not None)
+                                       warm=bool(self.warm_start) and start is not None,
+                                       noise_floor=float(self.noise_floor or MIN_NOISE_VAR))
         else:
             hp, mean = start
         policy = policy_class(self.passivity)(options)

@@ -37,7 +37,9 @@ class LearnerLoop:
     #: longest catch-up before a command that must see the samples sent before it (s)
     DRAIN_S = 0.05
     #: snapshots back to the node: at most one per period (s), and at most this many bytes/s
-    SNAPSHOT_PERIOD_S = 0.02
+    #: (a 60 Hz stream gets each sample's snapshot before the next message: at 20 ms every
+    #: other answer came from a model two samples old)
+    SNAPSHOT_PERIOD_S = 0.005
     SNAPSHOT_BYTES_PER_S = 100e6
     #: the status is sent at least this often (s)
     STATUS_PERIOD_S = 0.25

@@ -36,6 +36,11 @@ PARAMS = {p.name: p for p in (
               'the buffer)', choices=('auto',) + tuple(PRIORS)),
     ParamSpec('bias', 'bool', False, 'fixed prior only: learn a per-joint constant bias with the '
               'prior (reported apart from the damping force); auto decides itself'),
+    ParamSpec('noise_floor', 'float', 1e-5, 'least noise variance the hyper-parameter fit may '
+              "learn, in units of the residual's variance: a stream's consecutive samples, and "
+              'forces that depend on states the model does not see, drive the likelihood to '
+              'near-zero noise and lengthscales too short to predict the next sample',
+              low=1e-9, high=1.0),
     ParamSpec('buffer_size', 'int', 200, 'samples kept in the GP (its window)', low=2, high=5000),
     ParamSpec('min_samples', 'int', 20, 'prior-mean estimate until this many samples are '
               'buffered', low=1, high=5000),
@@ -105,6 +110,7 @@ class EstimatorConfig:
     passivity: str = PARAMS['passivity'].default
     prior: str = PARAMS['prior'].default
     bias: bool = PARAMS['bias'].default
+    noise_floor: float = PARAMS['noise_floor'].default
     buffer_size: int = PARAMS['buffer_size'].default
     min_samples: int = PARAMS['min_samples'].default
     refit_period_s: float = PARAMS['refit_period_s'].default
@@ -214,10 +220,10 @@ class EstimatorConfig:
         """
         Return the GP's constructor arguments for this configuration.
 
-        Passivity, prior, no window: the learner appends each new sample to the model and
+        Passivity, prior, noise floor, no window: the learner appends each new sample to the model and
         rebases it on the buffer every so often (``absorb``); the buffer holds the window.
         """
-        kw = {'passivity': self.passivity, 'window': None,
+        kw = {'passivity': self.passivity, 'window': None, 'noise_floor': self.noise_floor,
               'prior': 'viscous' if self.prior == 'auto' else self.prior,
               'bias': bool(self.bias) and self.prior != 'auto'}
         if self.operating_domain and self.passivity == 'certified':

@@ -9,8 +9,8 @@ message path uses, and runs a real ``Learner`` in a child process at a lower sch
 * the child sends back immutable snapshots (``Learner.snapshot(frozen=True)``: a predict-only
   model, pickled) at most every ``SNAPSHOT_PERIOD_S``, and less often when they are large (the
   Cholesky factors for the variance are ``8 N n^2`` bytes: at most ``SNAPSHOT_BYTES_PER_S``),
-  its status every ``STATUS_PERIOD_S`` (``child.LearnerLoop``), and the friction residual
-  samples it completed; a receiver thread here installs them by reference assignment;
+  its status every ``STATUS_PERIOD_S`` (all three of ``child.LearnerLoop``), and the friction
+  residual samples it completed; a receiver thread here installs them by reference assignment;
 * commands (refit, save, reset, reconfigure, ...) go through a pipe and are answered by id.
 
 The child is forked from a fork server started by a fresh interpreter (``forkserver``, with the
