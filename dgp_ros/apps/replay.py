@@ -41,7 +41,7 @@ import threading
 import time
 from typing import Optional
 
-from dgp_ros.apps.replay_report import (arrays_of, CsvWriter, make_plots, summarize,
+from dgp_ros.apps.replay_report import (arrays_of, CsvWriter, make_plots, OneStep, summarize,
                                         write_csv, write_summary)
 from dgp_ros.bags import BagError, iter_joint_states, joint_state_topic, open_bag
 from dgp_ros.gp import KINDS, PASSIVITY_MODES
@@ -173,9 +173,10 @@ def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False
 
     ``estimates`` is the list of :class:`dgp_ros.online.Estimate` (rejected messages have none);
     ``on_estimate(e)`` is called with each as it comes (partial outputs); ``info`` has the
-    topic, message counts, undecodable count, timings, the joint names of the first message
-    and ``interrupted`` (a KeyboardInterrupt, i.e. SIGINT, ends the stream early: what was
-    estimated so far is returned).
+    topic, message counts, undecodable count, timings, the joint names of the first message,
+    ``one_step`` (a :class:`~dgp_ros.apps.replay_report.OneStep`: what was learned, predicted
+    before and after it was) and ``interrupted`` (a KeyboardInterrupt, i.e. SIGINT, ends the
+    stream early: what was estimated so far is returned).
     """
     from dgp_ros.online import OnlineEstimator
     config = config if config is not None else build_config()
@@ -186,6 +187,7 @@ def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False
     except ValueError as exc:
         raise ReplayError(f'invalid estimator parameters: {exc}') from None
     est.set_source('bag')
+    scores = OneStep(est)
     reader = open_bag(bag)
     t0 = time.perf_counter()
     out, n, undecodable = [], 0, 0
@@ -208,6 +210,7 @@ def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False
                     t_proc += time.perf_counter() - tp
                     if r is not None:
                         out.append(r)
+                        scores.add(r, sample.names, sample.position)
                         if on_estimate is not None:
                             on_estimate(r)
                 bar.update(n)
@@ -219,7 +222,7 @@ def replay(bag, topic: Optional[str] = None, config=None, progress: bool = False
         est.close()
     info = {'topic': topic, 'messages': n, 'undecodable': undecodable,
             'wall_time_s': time.perf_counter() - t0, 'process_time_s': t_proc,
-            'bag_joints': seen_names or [], 'interrupted': interrupted}
+            'bag_joints': seen_names or [], 'interrupted': interrupted, 'one_step': scores}
     return out, est, info
 
 
@@ -245,7 +248,8 @@ def run(bag, out, topic=None, config=None, mass=None, plots=True, progress=False
              est.names or [f'q{i}' for i in range(estimates[0].qd.size if estimates else 0)])
     summary = summarize(bag, estimates, est, info, names, mass=mass)
     if plots and estimates:
-        summary['plots'] = [p.name for p in make_plots(out, estimates, names, mass=mass)]
+        summary['plots'] = [p.name for p in make_plots(out, estimates, names, mass=mass,
+                                                       one_step=info.get('one_step'))]
     if save_model and est.trained and not info['interrupted']:
         summary['model_file'] = est.save(save_model)
     write_summary(out, summary)
@@ -355,7 +359,12 @@ def main(argv=None) -> int:
         nm = ', '.join(f'{j} {v:.4g}' if v is not None else
                        f'{j} inf/n.a. ({s["outputs"][j]["huge_or_nonfinite"]} huge estimates)'
                        for j, v in s['nmse'].items())
-        print(f'{prog}: {s["estimates"]}/{s["messages"]} messages on {s["topic"]}; NMSE {nm}; '
+        after = ', '.join(f'{j} {v:.3g}' if v is not None else f'{j} n.a.'
+                          for j, v in s['nmse_after_learning'].items())
+        what = 'residual sample' if 'residual' in s['nmse_target'] else 'message'
+        print(f'{prog}: {s["estimates"]}/{s["messages"]} messages on {s["topic"]}; NMSE one '
+              f'step ahead (each {what} predicted before it was learned, against the '
+              f'{s["nmse_target"]}): {nm}; after learning it (tracking, not accuracy): {after}; '
               f'P_hat<0 fraction {s["negative_power_fraction"]}; refits ok {s["refits"]["ok"]} '
               f'failed {s["refits"]["failed"]}; rejected {s["rejected_total"]}; '
               f'wall {wall:.2f} s -> {a.out}', file=sys.stderr)

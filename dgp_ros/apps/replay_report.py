@@ -10,7 +10,10 @@ The files ``dgp-replay --out DIR`` writes to ``DIR``:
   (measured effort), ``tau_hat_<j>``, ``stddev_<j>``; then ``P`` (measured power ``qd.tau``),
   ``P_hat`` (``qd.tau_hat``), ``source`` (model/prior/fallback) and ``added`` (0/1). Rejected
   messages have no row (they are counted in the summary).
-- ``summary.json``: NMSE per output (all estimates, and model-only estimates), RMSE (and RMSE /
+- ``summary.json``: NMSE per output one step ahead (``nmse``: each message predicted before the
+  estimator learned it, the headline; with inverse dynamics each learned residual sample,
+  predicted by the model's damping plus its rigid-body correction) and after learning it
+  (``nmse_after_learning``: a tracking error, not an accuracy; see ``OneStep``), RMSE (and RMSE /
   mass with ``--mass``), median absolute error, count of huge/non-finite estimates,
   negative-power fractions (estimate and measurement), refits, timings,
   rejected-message counts by reason, certificate at the end, the configuration used.
@@ -28,8 +31,8 @@ import time
 
 import numpy as np
 
-__all__ = ['arrays_of', 'CsvWriter', 'CSV_FIXED', 'make_plots', 'summarize', 'write_csv',
-           'write_summary']
+__all__ = ['arrays_of', 'CsvWriter', 'CSV_FIXED', 'make_plots', 'OneStep', 'summarize',
+           'write_csv', 'write_summary']
 
 
 def _nmse(err, y):
@@ -81,6 +84,73 @@ def arrays_of(estimates):
 
 
 CSV_FIXED = ('P', 'P_hat', 'source', 'added')
+
+
+class OneStep:
+    """
+    What the estimator learns, predicted before and after it learned it (the replay's NMSE).
+
+    Without inverse dynamics the target is the measured force: ``ahead`` is the answer to the
+    message (the model before it learned the message) and ``after`` the estimator's estimate
+    at the same velocity once it has. With inverse dynamics the target is the friction residual
+    the estimator learns (``effort - tau_rb``, complete ``accel_half_window_s`` later): ``ahead``
+    is the model's ``predict_residual(q, qd)`` (damping plus its correction of the rigid-body
+    model) when the message came, ``after`` the same once the residual was learned; only
+    the messages the rate limit lets through count. Call :meth:`add` with each Estimate (and the
+    message's positions) right after ``OnlineEstimator.process`` returned it.
+    """
+
+    #: stamps of learned messages whose residual is not complete yet are kept this long (s)
+    KEEP_S = 5.0
+
+    def __init__(self, est):
+        self.est = est
+        self.residual = bool(est.config.inverse_dynamics)
+        self.truth, self.ahead, self.after, self.t = [], [], [], []
+        self._waiting = {}              # stamp -> prediction before learning (residual case)
+
+    @property
+    def target(self) -> str:
+        return 'friction residual' if self.residual else 'measured effort'
+
+    def _residual_prediction(self, q, qd, fallback):
+        m = self.est.model
+        if m is None:
+            return fallback
+        return np.asarray(m.predict_residual(q=q[None, :], qd=qd[None, :]))[0]
+
+    def add(self, e, names=None, position=None) -> None:
+        """Take the Estimate ``e`` of a message with joint ``names`` and ``position`` (M,)."""
+        if not self.residual:
+            self.t.append(e.stamp_s)
+            self.truth.append(e.tau)
+            self.ahead.append(e.tau_hat)
+            self.after.append(self.est.predict(e.qd)[0])
+            return
+        for r in e.residuals:
+            before = self._waiting.pop(r.stamp_s, None)
+            if before is not None and np.all(np.isfinite(r.residual)):
+                self.t.append(r.stamp_s)
+                self.truth.append(r.residual)
+                self.ahead.append(before)
+                self.after.append(self._residual_prediction(r.q, r.qd, before))
+        if e.added and position is not None:
+            q = np.asarray(position, float)
+            if e.names and names is not None:      # the message's order -> the estimator's
+                at = {n: i for i, n in enumerate(names)}
+                q = q[[at[n] for n in e.names]]
+            if q.shape == e.qd.shape:
+                self._waiting[e.stamp_s] = self._residual_prediction(q, e.qd, e.tau_hat)
+            old = [s for s in self._waiting if s < e.stamp_s - self.KEEP_S]
+            for s in old:
+                del self._waiting[s]
+
+    def arrays(self):
+        """(t (k,), truth, ahead, after (k, N) each), or None before any pair."""
+        if not self.truth:
+            return None
+        return (np.array(self.t), np.array(self.truth), np.array(self.ahead),
+                np.array(self.after))
 
 
 class CsvWriter:
@@ -159,20 +229,27 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
     """
     diag = est.diagnostics()
     A = arrays_of(estimates)
+    one = info.get('one_step')
+    S = one.arrays() if one is not None else None
+    if S is None and A is not None:                 # a caller without the replay's pairs
+        S = (A['t'], A['tau'], A['tau_hat'], None)
     per = {}
-    if A is not None:
-        err = A['tau_hat'] - A['tau']
-        model = A['source'] == 'model'
+    if S is not None:
+        _, truth, ahead, after = S
+        err = ahead - truth
         for i, j in enumerate(names):
-            nmse, mse = _nmse(err[:, i], A['tau'][:, i])
-            nmse_m, _ = _nmse(err[model, i], A['tau'][model, i])
-            th = A['tau_hat'][:, i]
-            scale = 1e6 * max(float(np.max(np.abs(A['tau'][:, i]))), 1.0)
-            d = {'nmse': nmse, 'nmse_model_only': nmse_m, 'rmse': math.sqrt(mse),
+            nmse, mse = _nmse(err[:, i], truth[:, i])
+            th = ahead[:, i]
+            scale = 1e6 * max(float(np.max(np.abs(truth[:, i]))), 1.0)
+            d = {'nmse': nmse,
+                 'nmse_after_learning': (_nmse(after[:, i] - truth[:, i], truth[:, i])[0]
+                                         if after is not None else float('nan')),
+                 'rmse': math.sqrt(mse),
                  'median_abs_error': float(np.median(np.abs(err[:, i]))),
                  # estimates that are non-finite or > 1e6 x the largest measurement
-                 'huge_or_nonfinite': int(np.sum(~np.isfinite(th) | (np.abs(th) > scale))),
-                 'mean_stddev': float(np.mean(A['stddev'][:, i]))}
+                 'huge_or_nonfinite': int(np.sum(~np.isfinite(th) | (np.abs(th) > scale)))}
+            if A is not None:
+                d['mean_stddev'] = float(np.mean(A['stddev'][:, i]))
             if mass:
                 d['rmse_per_mass'] = math.sqrt(mse) / mass
             per[j] = d
@@ -182,8 +259,12 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
         'bag': str(bag), 'topic': info['topic'], 'joints': list(names),
         'messages': info['messages'], 'estimates': k,
         'duration_s': float(A['t'][-1] - A['t'][0]) if k else 0.0,
+        # the headline: each message (residual sample) predicted before it was learned
         'nmse': {j: per[j]['nmse'] for j in per},
         'nmse_mean': float(np.mean([per[j]['nmse'] for j in per])) if per else float('nan'),
+        'nmse_after_learning': {j: per[j]['nmse_after_learning'] for j in per},
+        'nmse_target': one.target if one is not None else 'measured effort',
+        'nmse_samples': 0 if S is None else int(len(S[0])),
         'outputs': per,
         'negative_power_fraction': float(np.mean(A['P_hat'] < 0)) if k else float('nan'),
         'min_power_estimate': float(np.min(A['P_hat'])) if k else float('nan'),
@@ -220,11 +301,14 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
     return _clean(s)
 
 
-def make_plots(out: Path, estimates, names, mass=None) -> list:
+def make_plots(out: Path, estimates, names, mass=None, one_step=None) -> list:
     """
     Write the three plots (module docstring) into ``out``; return their paths ([] if no estimate).
 
-    ``names``: the N joint names; ``mass`` (kg): the error plot is divided by it when given.
+    ``names``: the N joint names; ``mass`` (kg): the error plot is divided by it when given;
+    ``one_step``: the replay's :class:`OneStep` (what was learned, predicted before and after it
+    was): the estimate and error plots show it, one step ahead (else the answers against the
+    measured effort).
     """
     import matplotlib
     matplotlib.use('Agg', force=True)
@@ -233,30 +317,38 @@ def make_plots(out: Path, estimates, names, mass=None) -> list:
     A = arrays_of(estimates)
     if A is None:
         return []
-    t = A['t'] - A['t'][0]
+    S = one_step.arrays() if one_step is not None else None
+    target = one_step.target if S is not None else 'measured effort'
+    ts, truth, ahead, after = S if S is not None else (A['t'], A['tau'], A['tau_hat'], None)
+    t0 = A['t'][0]
+    t, tp = A['t'] - t0, ts - t0
     N = len(names)
     files = []
 
     fig, axes = plt.subplots(N, 1, figsize=(10, 2.6 * N), sharex=True, squeeze=False)
     for i, j in enumerate(names):
         ax = axes[i, 0]
-        ax.plot(t, A['tau'][:, i], lw=0.8, color='0.4', label='measured')
-        ax.plot(t, A['tau_hat'][:, i], lw=1.0, color='C0', label='estimate')
-        sd = A['stddev'][:, i]
-        ok = np.isfinite(sd)
-        lo, hi = (A['tau_hat'][:, i] - 2 * sd)[ok], (A['tau_hat'][:, i] + 2 * sd)[ok]
-        ax.fill_between(t[ok], lo, hi, color='C0', alpha=0.2, lw=0, label='±2σ')
+        ax.plot(tp, truth[:, i], lw=0.8, color='0.4', label=target)
+        ax.plot(tp, ahead[:, i], lw=1.0, color='C0', label='one step ahead')
+        if after is not None:
+            ax.plot(tp, after[:, i], lw=0.6, color='C1', alpha=0.6,
+                    label='after learning it (tracking)')
+        if S is None or not one_step.residual:
+            sd = A['stddev'][:, i]
+            ok = np.isfinite(sd)
+            lo, hi = (A['tau_hat'][:, i] - 2 * sd)[ok], (A['tau_hat'][:, i] + 2 * sd)[ok]
+            ax.fill_between(t[ok], lo, hi, color='C0', alpha=0.2, lw=0, label='±2σ')
         ax.set_ylabel(f'{j}')
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc='upper right', fontsize=8)
-    axes[0, 0].set_title('damping force: estimate vs measurement')
+    axes[0, 0].set_title(f'{target}: each predicted before it was learned')
     axes[-1, 0].set_xlabel('time [s]')
     fig.tight_layout()
     files.append(out / 'estimate_vs_measurement.png')
     fig.savefig(files[-1], dpi=110)
     plt.close(fig)
 
-    err = A['tau_hat'] - A['tau']
+    err = ahead - truth
     unit = 'N'
     if mass:
         err = err / mass
@@ -264,11 +356,11 @@ def make_plots(out: Path, estimates, names, mass=None) -> list:
     fig, axes = plt.subplots(N, 1, figsize=(10, 2.2 * N), sharex=True, squeeze=False)
     for i, j in enumerate(names):
         ax = axes[i, 0]
-        ax.plot(t, err[:, i], lw=0.8, color='C3')
+        ax.plot(tp, err[:, i], lw=0.8, color='C3')
         ax.axhline(0, color='k', lw=0.5)
         ax.set_ylabel(f'{j} [{unit}]' if mass else j)
         ax.grid(alpha=0.3)
-    axes[0, 0].set_title('estimation error' + (f' / mass ({mass:g} kg)' if mass else ''))
+    axes[0, 0].set_title('error one step ahead' + (f' / mass ({mass:g} kg)' if mass else ''))
     axes[-1, 0].set_xlabel('time [s]')
     fig.tight_layout()
     files.append(out / 'error.png')

@@ -338,7 +338,9 @@ class OnlineEstimator:
         Qs = np.atleast_2d(np.asarray(Qs, dtype=float))
         with self._lock:
             snap = self._learner.snapshot(self._want_stddev)
-            return self._estimate(snap, Qs)[0]
+            # the force only: the lean pass (no variance, no damping matrix)
+            return answer(snap, Qs, False, False, self.config.passivity, self.health,
+                          self._learner.note_error, self._plans)[0]
 
     # ------------------------------------------------------------------ learner control
     def request_refit(self) -> Tuple[bool, str]:

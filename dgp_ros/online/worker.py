@@ -133,12 +133,14 @@ def run_job(job: RefitJob, factory: Callable) -> RefitResult:
                 kw['hyperparams'] = job.hyper
                 kw['warm_start'] = job.warm
             model = factory(cfg.model, **kw)
-            model.fit(job.Q, job.T, optimize=job.optimize)
+            # in line the proof waits for the end of the stream (it would hold up a replay, and
+            # be stale at the next sample); beside the answers it runs here
+            model.fit(job.Q, job.T, optimize=job.optimize, prove=cfg.refit_mode != 'sync')
             model.correction_ = job.correction
             ok, why = sane(model, job.Q, job.T)
             if not ok:
                 return RefitResult(job, model, False, why, time.perf_counter() - t0)
-        proof = prove(model, cfg.passivity)
+        proof = prove(model, cfg.passivity) if cfg.refit_mode != 'sync' else ''
     except Exception as exc:
         return RefitResult(job, None, False, f'{type(exc).__name__}: {exc}',
                            time.perf_counter() - t0)

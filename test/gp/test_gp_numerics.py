@@ -206,8 +206,8 @@ def _ill_factory(mod):
         kw['hyperparams'] = _hyper(kind, Q, T, mod)
 
         class Fixed(model_class(kind)):
-            def fit(self, Qd, Tau, optimize=True):
-                return super().fit(Qd, Tau, optimize=False)
+            def fit(self, Qd, Tau, optimize=True, prove=True):
+                return super().fit(Qd, Tau, optimize=False, prove=prove)
         return Fixed(**kw)
     return make
 

@@ -251,12 +251,14 @@ class _Unprovable(FullDGP):
 
 def test_an_unproven_refit_serves_projected_and_says_so():
     # a certifying mode never freezes the learning on a proof that fails: the candidate serves,
-    # every answer projected onto qd^T tau >= 0, and /diagnostics names the missing proof
-    est = OnlineEstimator(cfg(min_samples=10, passivity='certified'),
+    # every answer projected onto qd^T tau >= 0, and /diagnostics names the missing proof (the
+    # proofs run beside the answers: refit_mode async; in line they wait for the stream's end)
+    est = OnlineEstimator(cfg(min_samples=10, passivity='certified', refit_mode='async'),
                           model_factory=lambda kind, **kw: _Unprovable(**kw))
     out = feed(est, 30)
-    assert out[-1].source == 'model'
-    assert est.request_refit()[0]
+    assert est.wait_for_refit(60)
+    out = feed(est, 2, t0=5.0)
+    assert out[-1].source == 'model' and est.wait_for_refit(60)
     d = est.diagnostics()
     assert d['trained'] and d['refits_ok'] >= 2 and d['refits_failed'] == 0
     assert d['proofs_failed'] == d['refits_ok']
@@ -521,8 +523,8 @@ class _WildOnce(FullDGP):
     fits = 0
     _wild = False
 
-    def fit(self, Qd, Tau, optimize=True):
-        super().fit(Qd, Tau, optimize)
+    def fit(self, Qd, Tau, optimize=True, prove=True):
+        super().fit(Qd, Tau, optimize, prove)
         if optimize:                   # a refit job's candidate (absorbs keep the hyper)
             _WildOnce.fits += 1
             self._wild = _WildOnce.fits == 2
@@ -561,11 +563,11 @@ class _UnprovenFirst(FullDGP):
 
     fits = 0
 
-    def fit(self, Qd, Tau, optimize=True):
+    def fit(self, Qd, Tau, optimize=True, prove=True):
         type(self).fits += 1
         if type(self).fits == 1:
             raise RuntimeError('no proof: box budget exhausted')
-        return super().fit(Qd, Tau, optimize)
+        return super().fit(Qd, Tau, optimize, prove)
 
 
 def test_a_first_fit_that_fails_is_retried_without_a_refit_period():
