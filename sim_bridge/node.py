@@ -6,10 +6,13 @@ Topics: ``generalized_state`` (sensor_msgs/JointState: name, velocity = q, effor
 [-drag, side, -lift] in wind axes, torque zero), ``/clock`` (rosgraph_msgs/Clock) if
 ``publish_clock``.  All stamps are simulation time (monotonic across looped approaches).
 Parameters: see config/sim_bridge.yaml.  Changes accepted at run time take effect at the next
-approach (``loop``), except ``real_time_factor`` which applies at once.
+approach (``loop``), except ``real_time_factor`` which applies at once.  With ``min_subscribers``
+the approach starts once that many subscriptions of ``generalized_state`` matched (a recorder
+that must see the first sample, as the demo's).
 """
 import math
 import sys
+import time
 
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import WrenchStamped
@@ -43,6 +46,11 @@ SPECS = [
     ParamSpec('publish_clock', 'bool', False, 'publish simulation time on /clock (start-up only)'),
     ParamSpec('max_sim_time_s', 'float', 0.0, 'stop after this much simulated time (s); '
               '0 = unlimited', low=0.0, high=1e9),
+    ParamSpec('min_subscribers', 'int', 0, 'wait until this many subscriptions of '
+              'generalized_state match before the approach starts (start-up only)', low=0,
+              high=100),
+    ParamSpec('wait_for_subscribers_s', 'float', 30.0, 'longest wait for min_subscribers (s); '
+              'then fly anyway', low=0.0, high=3600.0),
 ]
 PARAMETERS = {p.name: p for p in SPECS}
 CONFIG_KEYS = ('rate_hz', 'wind_amplitude', 'wind_frequency', 'wind_phase', 'coordinates',
@@ -83,7 +91,8 @@ class SimBridgeNode(Node):
         self.published = 0
         self._t_offset = 0.0
         self.sim = ApproachSimulator(self.cfg)
-        self._publish(self.sim.reset())
+        self._first = self.sim.reset()      # published once the subscribers are there
+        self._waiting_since = time.monotonic()
         self.timer = None
         self._make_timer()
         self.get_logger().info(
@@ -126,6 +135,17 @@ class SimBridgeNode(Node):
     # ------------------------------------------------------------------ stepping
     def _on_timer(self):
         if self.done:
+            return
+        if self._first is not None:
+            want = self.get_parameter('min_subscribers').value
+            enough = self.state_pub.get_subscription_count() >= want
+            if not enough and time.monotonic() - self._waiting_since < \
+                    self.get_parameter('wait_for_subscribers_s').value:
+                return
+            if not enough:
+                self.get_logger().warn('flying without the expected subscribers')
+            self._publish(self._first)
+            self._first = None
             return
         if self.sim.touched_down:
             if not self.get_parameter('loop').value:

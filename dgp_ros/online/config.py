@@ -220,8 +220,9 @@ class EstimatorConfig:
         """
         Return the GP's constructor arguments for this configuration.
 
-        Passivity, prior, noise floor, no window: the learner appends each new sample to the model and
-        rebases it on the buffer every so often (``absorb``); the buffer holds the window.
+        Passivity, prior, noise floor, no window: the learner appends each new sample to the
+        model and rebases it on the buffer every so often (``absorb``); the buffer holds the
+        window.
         """
         kw = {'passivity': self.passivity, 'window': None, 'noise_floor': self.noise_floor,
               'prior': 'viscous' if self.prior == 'auto' else self.prior,

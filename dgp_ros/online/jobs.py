@@ -99,11 +99,14 @@ class JobRunner:
         # re-learning on data like the last optimum's refines it (no restarts); after the buffer
         # doubled the data changed enough to search again from scratch
         warm = self._hyper is not None and not self._hypers_outgrown()
+        # the served model as it is now: the candidate's opponent on the samples that arrive
+        # during its fit (appended to the served one meanwhile; a snapshot keeps this state)
+        base = None if self._model is None else self._model.snapshot(variance=False)
         return RefitJob('fit', dataclasses.replace(cfg), self._seq, self._generation,
                         self._last_t, Q=Q, T=T, optimize=optimize,
                         hyper=self._with_prior(self._hyper),
                         warm=warm, kw=self._model_kw(cfg), correction=self._correction(),
-                        target_gen=self._target_gen)
+                        target_gen=self._target_gen, source=base)
 
     def request_refit(self) -> Tuple[bool, str]:
         """Refit now (async: start it in the background). Returns (ok, message)."""
@@ -153,7 +156,7 @@ class JobRunner:
         seq, gen = job.seq, job.target_gen
         try:
             if ok and job.kind == 'fit':
-                ok, why, _ = self._held_out(model, job.seq)
+                ok, why, _ = self._held_out(model, job.source, job.seq)
                 if not ok:
                     h.refits_rejected += 1
             if ok and job.kind == 'fit':
@@ -234,26 +237,28 @@ class JobRunner:
             return False, h.last_refit_error
         return True, f'recertified in {dt:.3f} s'
 
-    def _held_out(self, model, seq: int) -> Tuple[bool, str, int]:
+    def _held_out(self, model, base, seq: int) -> Tuple[bool, str, int]:
         """
-        Compare the candidate with the current model on the samples it has not seen.
+        Compare the candidate with the served model on the samples neither has seen.
 
-        These are the samples that arrived while it was fitted (none in sync mode), answered by
-        the incumbent before it absorbed them and by the candidate, which has not seen them
-        either. Returns (ok, reason, seq of the last of them).
+        These are the samples that arrived while the candidate was fitted (none in sync mode):
+        the candidate and ``base``, the served model when the fit started (a snapshot: the
+        served one has appended them since), each predict them without having learned them.
+        Returns (ok, reason, seq of the last of them).
         """
         with self._lock:
-            newer = [(s, q, t, b) for (s, q, t, b) in self._pending if s > seq]
-        if sum(b is not None for *_, b in newer) < 10:
+            newer = [(s, q, t) for (s, q, t) in self._pending if s > seq]
+        if base is None or len(newer) < 10:
             return True, '', seq
-        e_new, e_old, T = [], [], []
+        k = self.HELD_OUT_EVERY
+        if len(newer) > 2 * k:          # the first k, then k spread over the rest
+            rest = newer[k:]
+            newer = newer[:k] + [rest[i] for i in np.linspace(0, len(rest) - 1, k).astype(int)]
         try:
-            Qn = np.array([q for _, q, _, b in newer if b is not None])
-            P = model.predict(Qn)
-            for (s, q, t, b), p in zip([x for x in newer if x[3] is not None], P):
-                e_new.append(p - t)
-                e_old.append(b - t)
-                T.append(t)
+            Qn = np.array([q for _, q, _ in newer])
+            T = np.array([t for _, _, t in newer])
+            e_new = model.predict(Qn) - T
+            e_old = base.predict(Qn) - T
             seq = newer[-1][0]
         except Exception as exc:          # noqa: BLE001 - a broken candidate is caught later
             return True, f'held-out check skipped: {exc}', seq

@@ -66,8 +66,8 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
 
     """
 
-    #: samples arriving during a refit that the incumbent answers for the held-out check: the
-    #: first this many, then one per ``buffer_size // HELD_OUT_EVERY``
+    #: samples arriving during a refit on which its held-out check compares the models: the
+    #: first this many, then evenly spread ones up to twice as many
     HELD_OUT_EVERY = 20
 
     def __init__(self, config: Optional[EstimatorConfig] = None,
@@ -280,18 +280,9 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
             self._version += 1                  # the prior the answers come from may change
         h.samples_added += 1
         if self.refit_running():
-            # the incumbent's answer before it learns the sample: the fair opponent of a
-            # candidate that has not seen it either (see jobs.JobRunner._held_out); not for
-            # every sample (45 % of the learner's time with every message learned)
-            before = None
-            stride = max(1, self.config.buffer_size // self.HELD_OUT_EVERY)
-            if self._model is not None and (len(self._pending) < self.HELD_OUT_EVERY or
-                                            self._seq % stride == 0):
-                try:
-                    before = self._model.predict(qd[None, :])[0]
-                except Exception:       # noqa: BLE001 - then the sample only serves the replay
-                    before = None
-            self._pending.append((self._seq, qd.copy(), target.copy(), before))
+            # the samples a running refit's candidate has not seen: its held-out check
+            # (jobs.JobRunner._held_out)
+            self._pending.append((self._seq, qd.copy(), target.copy()))
         return True
 
     # ------------------------------------------------------------------ snapshots

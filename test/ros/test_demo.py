@@ -14,16 +14,25 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 def test_demo_synthetic_runs_and_writes_outputs(tmp_path):
     out = tmp_path / 'demo'
     p = subprocess.run([sys.executable, '-m', 'dgp_ros.apps.demo', '--synthetic', '--duration',
-                        '12', '--buffer-size', '60', '--out', str(out), '--timeout', '150'],
+                        '12', '--buffer-size', '60', '--held-out-after', '6', '--out', str(out),
+                        '--timeout', '150'],
                        cwd=REPO, capture_output=True, text=True, timeout=200)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     assert 'dgp_ros demo summary' in p.stdout and 'NMSE' in p.stdout
+    assert 'one step ahead' in p.stdout and 'held out' in p.stdout
+    # the node's defaults: no estimator parameter but what the option asked for
+    assert "with the node's defaults but diagnostics_period_s:=0.5 model_path:=" in \
+        p.stdout and ' buffer_size:=60' in p.stdout and 'prior' not in \
+        p.stdout.split('started estimator')[1].splitlines()[0]
     for f in ('estimate_vs_measurement.png', 'dissipated_power_histogram.png', 'summary.json'):
         assert (out / f).stat().st_size > 0, f
     s = json.loads((out / 'summary.json').read_text())
     assert s['paired'] > 300
     assert s['negative_power_fraction'] == 0.0
     assert s['nmse_second_half']['airspeed'] < 0.1
+    ho = s['held_out']
+    assert ho['after_s'] >= 6.0 and ho['samples'] > 100
+    assert all(0 <= v < 1.0 for v in ho['nmse'].values()), ho
     assert s['diagnostics']['refits_ok'] not in ('0', None)
     # no orphans: the estimator child has exited
     import re

@@ -90,6 +90,34 @@ def test_publishes_well_formed_messages_at_rate(ctx):
         executor.shutdown()
 
 
+def test_the_approach_waits_for_its_subscribers(ctx):
+    # min_subscribers: nothing is published before a subscription matched; then the first
+    # sample is the trimmed state at t = 0 (a recorder that came late still sees it)
+    params = [Parameter('real_time_factor', value=0.0), Parameter('max_sim_time_s', value=0.5),
+              Parameter('min_subscribers', value=1)]
+    executor = SingleThreadedExecutor(context=ctx)
+    nodes = []
+    try:
+        sim = SimBridgeNode(context=ctx, parameter_overrides=params)
+        nodes.append(sim)
+        executor.add_node(sim)
+        _spin_until(executor, lambda: False, timeout=1.0)
+        assert sim.published == 0 and not sim.done
+        got = []
+        listener = rclpy.create_node('late_listener', context=ctx)
+        nodes.append(listener)
+        listener.create_subscription(JointState, 'generalized_state', got.append, 1000)
+        executor.add_node(listener)
+        _spin_until(executor, lambda: sim.done and len(got) >= sim.published, timeout=30)
+        assert sim.done and len(got) == sim.published == 31
+        assert _stamp(got[0].header.stamp) == 0.0
+    finally:
+        for n in nodes:
+            executor.remove_node(n)
+            n.destroy_node()
+        executor.shutdown()
+
+
 def test_body_coordinates_names_and_loop(ctx):
     params = [Parameter('coordinates', value='body'), Parameter('real_time_factor', value=0.0),
               Parameter('loop', value=True), Parameter('max_sim_time_s', value=70.0)]
