@@ -298,7 +298,7 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
             Q, T = self._buf.arrays() if self._buf is not None and self._buf.size else \
                 (np.zeros((0, N)), np.zeros((0, N)))
             cfg = self.config
-            prior = 'viscous' if cfg.model == 'ard' else cfg.prior
+            prior = 'viscous' if cfg.model == 'ard' or cfg.prior == 'auto' else cfg.prior
             try:
                 mean = make_mean(prior, 'full', bool(cfg.bias)).fit(Q, T)
                 resid = T - mean(Q) if Q.shape[0] else T

@@ -173,11 +173,18 @@ class StructureMixin:
 
     def _auto_prior(self):
         """(mean, std) of the parametric part for answers before the first model, or None."""
-        if not self.auto or self._history is None or self._history.samples < 2:
+        if not self.auto or self._history is None or self._history.samples < 1:
             return None
-        if self._param is None or self._param.samples * 2 < self._history.samples:
-            self._reselect()
-        mean = self._param.friction_mean().fit(None, None)
+        h = self._history
+        if h.samples < 2:
+            # the very first sample: the default family of it alone answers the second message
+            # (a re-selection would start the doubling schedule one sample early)
+            fit = h.fit(h.default_family, False, False)
+        else:
+            if self._param is None or self._param.samples * 2 < h.samples:
+                self._reselect()
+            fit = self._param
+        mean = fit.friction_mean().fit(None, None)
         Q, T = self._buf.rows_unordered() if self._buf is not None and self._buf.size else \
             (np.zeros((0, self._N)), np.zeros((0, self._N)))
         std = np.sqrt(np.mean((T - mean(Q)) ** 2, axis=0)) if Q.shape[0] else np.zeros(self._N)

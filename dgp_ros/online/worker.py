@@ -47,7 +47,9 @@ class RefitJob:
     hyper: Optional[dict] = None
     warm: bool = False
     model: object = None
-    source: object = None       # 'recertify': the served model ``model`` is a copy of
+    # 'recertify': the served model ``model`` is a copy of; 'fit': a snapshot of the served
+    # model when the job started (the opponent of the held-out check)
+    source: object = None
     kw: Optional[dict] = None   # 'fit': the model's constructor arguments (else the config's)
     correction: object = None   # 'fit': what the targets T exclude (saved with the model)
     target_gen: int = 0
