@@ -5,8 +5,8 @@ How new samples reach the model: appended at once, rebased on the buffer now and
   line: in ``learn``; the learner process: once per round of samples, as one block): an exact
   rank-k update of each output's Cholesky factor at the model's hyper-parameters, O(N n^2 k).
   The next answer already knows it: on a trajectory that keeps reaching new velocities (the A320
-  slowing down on its approach) the answer one step ahead comes from its neighbour of 1/60 s ago,
-  not from ten samples ago.
+  entering angles of attack it has not flown yet) the answer one step ahead comes from its
+  neighbour of 1/60 s ago, not from ten samples ago.
 * **Rebases** (``absorb``). An exact refit on the buffer at the same hyper-parameters, once
   ``buffer_size // REBASE_FRACTION`` samples were appended: the buffer replaces samples anywhere
   (coverage), appends only add, so a rebase brings the model back to the buffer (and its size
