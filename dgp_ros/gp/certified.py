@@ -134,39 +134,33 @@ class CertifiedPolicy(PassivityPolicy):
         return self.PSD_DELTA * float(np.max(hp.sy / hp.sx))
 
     # ---------------------------------------------------------------- life cycle
-    def enforce(self, post):
+    def enforce(self, post, prove: bool = True):
+        """
+        Establish the certificate of a fit (module docstring).
+
+        ``prove=False`` (``defer``): the cheap certificates only; up to ``JOINT_MAX_N``
+        velocities the domain proof is left pending (stale: every answer projected) on the
+        domain of the new data for ``recertify``.
+        """
         t0 = time.perf_counter()
         self.data_box = _box_of(post.Qd)
         self.domain = self._candidate_domains()[0]
         self.scale, self.leaves, self.blend_on, self.clip = 1.0, None, False, False
         if not self._global(post, rkhs=True):
             if post.N > self.JOINT_MAX_N:
-                self._clip_on(post, diagnostics=True)
-            else:
+                self._clip_on(post, diagnostics=prove)
+            elif prove:
                 self._prove(post, self._candidate_domains(), reuse=False)
-        self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
-        return post
-
-    def defer(self, post):
-        """
-        Establish the cheap certificates only: the global bound, else the eigenvalue floor.
-
-        Up to ``JOINT_MAX_N`` velocities the domain proof is left pending (stale: every answer
-        projected) on the domain of the new data for ``recertify``.
-        """
-        t0 = time.perf_counter()
-        self.data_box = _box_of(post.Qd)
-        self.domain = self._candidate_domains()[0]
-        self.scale, self.leaves, self.blend_on, self.clip = 1.0, None, False, False
-        if not self._global(post, rkhs=True):
-            if post.N > self.JOINT_MAX_N:
-                self._clip_on(post, diagnostics=False)
             else:
                 self.cert = Certificate(False, float('nan'), 'projection', None, self.scale,
                                         {'note': 'proof pending: every answer is projected'},
                                         stale=True, guarantee='pointwise')
         self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
         return post
+
+    def defer(self, post):
+        """Establish the cheap certificates only (``enforce(post, prove=False)``)."""
+        return self.enforce(post, prove=False)
 
     def _global(self, post, rkhs: bool) -> bool:
         """Certificate (1); True when it holds (then nothing is blended or clipped)."""
