@@ -272,12 +272,7 @@ class _DGP:
 
     @property
     def mean_diag_(self) -> np.ndarray:
-        """
-        Return the lower bound of the prior damping per joint.
-
-        Lower bound of the prior damping ``m_d(qd)`` per joint (for the viscous prior, the
-        constant ``m_d`` itself), (N,).
-        """
+        """Lower bound of the prior damping ``m_d(qd)`` per joint (viscous: ``m_d``), (N,)."""
         p = self._check_fitted()
         if not p.structure.has_damping:
             raise AttributeError('ArdGP has a constant prior mean, see mean_')
@@ -290,11 +285,7 @@ class _DGP:
 
     @property
     def hyperparams_(self) -> dict:
-        """
-        Everything a warm start needs (``hyperparams=`` of a new model).
-
-        Kernel hyper-parameters, scales and the prior mean, as plain lists.
-        """
+        """Hyper-parameters, scales and prior mean as lists (``hyperparams=`` to warm start)."""
         p = self._check_fitted()
         return dict(p.hyper.to_dict(), mean=p.mean.to_dict())
 
@@ -414,10 +405,8 @@ class _DGP:
     # ------------------------------------------------------------------ passivity
     def certificate(self) -> Certificate:
         """
-        Return the passivity certificate of the model as it is now.
-
-        A record, never a computation (``stale`` after updates the cheap check could not cover:
-        call ``recertify``).
+        Return the passivity certificate of the model as it is now: a record, not a computation
+        (``stale`` after updates the cheap check could not cover: call ``recertify``).
         """
         self._check_fitted()
         return self.policy_.cert

@@ -250,7 +250,6 @@ def defaults_yaml() -> str:
     ``config/estimator.yaml``: every parameter with its default, range and description
     (generated from ``PARAMS``; a test keeps the file equal to this text).
     """
-    import json
     import textwrap
     lines = ['# Parameters of the dgp_estimator node (dgp_ros/nodes/estimator.py), generated from',
              '# dgp_ros.online.config.PARAMS; regenerate with',
@@ -267,8 +266,26 @@ def defaults_yaml() -> str:
             # an empty YAML list has no type for the ROS parser: set it only when needed
             lines.append(f'    # {spec.name}: []')
         else:
-            lines.append(f'    {spec.name}: {json.dumps(spec.default)}')
+            lines.append(f'    {spec.name}: {_yaml_scalar(spec.default)}')
     return '\n'.join(lines) + '\n'
+
+
+def _yaml_scalar(value) -> str:
+    """
+    Return ``value`` as a YAML scalar that YAML 1.1 parsers (PyYAML, the ROS parameter file
+    parser) read back with its type: a float in exponent form gets a decimal point (``1.0e-05``),
+    since ``1e-05`` is a string to YAML 1.1.
+    """
+    import json
+    if isinstance(value, list):
+        return '[' + ', '.join(_yaml_scalar(v) for v in value) + ']'
+    text = json.dumps(value)
+    if isinstance(value, float) and 'e' in text:
+        mantissa, exponent = text.split('e')
+        if '.' not in mantissa:
+            mantissa += '.0'
+        text = f'{mantissa}e{exponent}'
+    return text
 
 
 def check_model_path(path: str) -> None:
