@@ -183,7 +183,28 @@ def _friction_diag(a: np.ndarray, coef: np.ndarray, eps: np.ndarray,
     return out
 
 
-class FrictionMean(PriorMean):
+class _SpeedDiag(PriorMean):
+    """
+    A prior whose diagonal depends on the speed ``|v|`` only and falls with it to ``coef[:, 0]``.
+
+    Subclasses give ``_diag_at(a)`` (speeds ``a`` (..., N) -> ``m_d`` (..., N)) and ``coef``
+    (N, k) with the viscous coefficient first: the diagonal, its bounds over a box and its infimum
+    follow from them.
+    """
+
+    def diag(self, Qd):
+        return self._diag_at(np.abs(Qd))
+
+    def diag_bounds(self, lo, hi):
+        amax = np.maximum(np.abs(lo), np.abs(hi))
+        amin = np.where((lo <= 0) & (hi >= 0), 0.0, np.minimum(np.abs(lo), np.abs(hi)))
+        return self._diag_at(amax), self._diag_at(amin)
+
+    def diag_inf(self):
+        return self.coef[:, 0].copy()
+
+
+class FrictionMean(_SpeedDiag):
     """
     Coulomb + viscous (+ Stribeck) per joint; see the module docstring.
 
@@ -258,17 +279,6 @@ class FrictionMean(PriorMean):
         vs = self.v_s[:, None] if self.stribeck else np.empty((self.coef.shape[0], 0))
         return _friction_diag(a, self.coef, np.stack((self.eps, self.eps), axis=1), vs)
 
-    def diag(self, Qd):
-        return self._diag_at(np.abs(Qd))
-
-    def diag_bounds(self, lo, hi):
-        amax = np.maximum(np.abs(lo), np.abs(hi))
-        amin = np.where((lo <= 0) & (hi >= 0), 0.0, np.minimum(np.abs(lo), np.abs(hi)))
-        return self._diag_at(amax), self._diag_at(amin)
-
-    def diag_inf(self):
-        return self.coef[:, 0].copy()
-
     def diag_ref(self):
         return self._diag_at(self.eps * 10.0)
 
@@ -285,7 +295,7 @@ class FrictionMean(PriorMean):
         return m
 
 
-class BasisFrictionMean(PriorMean):
+class BasisFrictionMean(_SpeedDiag):
     """
     Friction with frozen coefficients, fitted elsewhere (the long history of the online learner).
 
@@ -324,17 +334,6 @@ class BasisFrictionMean(PriorMean):
     def _diag_at(self, a: np.ndarray) -> np.ndarray:
         """``m_d`` at speeds ``a = |v|`` (..., N): the shared eps and vs of every joint."""
         return _friction_diag(a, self.coef, np.append(self.eps, self.eps_s), self.vs)
-
-    def diag(self, Qd):
-        return self._diag_at(np.abs(Qd))
-
-    def diag_bounds(self, lo, hi):
-        amax = np.maximum(np.abs(lo), np.abs(hi))
-        amin = np.where((lo <= 0) & (hi >= 0), 0.0, np.minimum(np.abs(lo), np.abs(hi)))
-        return self._diag_at(amax), self._diag_at(amin)
-
-    def diag_inf(self):
-        return self.coef[:, 0].copy()
 
     def diag_ref(self):
         scale = 10.0 * (float(self.eps.max()) if self.eps.size else 1.0)
