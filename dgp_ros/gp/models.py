@@ -404,10 +404,7 @@ class _DGP:
 
     # ------------------------------------------------------------------ passivity
     def certificate(self) -> Certificate:
-        """
-        Return the passivity certificate of the model as it is now: a record, not a computation
-        (``stale`` after updates the cheap check could not cover: call ``recertify``).
-        """
+        """Return the certificate as it is now: a record, not a computation (``recertify``)."""
         self._check_fitted()
         return self.policy_.cert
 

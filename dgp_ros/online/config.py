@@ -272,9 +272,10 @@ def defaults_yaml() -> str:
 
 def _yaml_scalar(value) -> str:
     """
-    Return ``value`` as a YAML scalar that YAML 1.1 parsers (PyYAML, the ROS parameter file
-    parser) read back with its type: a float in exponent form gets a decimal point (``1.0e-05``),
-    since ``1e-05`` is a string to YAML 1.1.
+    Return ``value`` as a YAML scalar that YAML 1.1 parsers read back with its type.
+
+    A float in exponent form gets a decimal point (``1.0e-05``): to YAML 1.1 (PyYAML, the ROS
+    parameter file parser) ``1e-05`` is a string.
     """
     import json
     if isinstance(value, list):
