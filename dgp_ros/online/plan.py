@@ -142,8 +142,11 @@ class PlanCache:
     """
     The plan of the snapshot being answered from (one at a time), built and checked on first use.
 
-    ``built``, ``verified`` and ``mismatches`` count plans; a plan that failed its check is not
-    used for its model (the model answers).
+    ``prepare(model)`` builds and checks the plan of a model before it is answered from (a learner
+    process's receiver thread calls it for every new snapshot, so that the message path only
+    picks it up); ``get(model)`` builds it itself when nothing was prepared. ``built``,
+    ``verified`` and ``mismatches`` count plans; a plan that failed its check is not used for its
+    model (the model answers).
     """
 
     VERIFY_EVERY = 50
@@ -152,26 +155,44 @@ class PlanCache:
         self._plan: Optional[AnswerPlan] = None
         self._ok = False
         self._verified_sig = None
+        self._ready = None                  # (plan, ok) prepared for the next model
         self.built = self.verified = self.mismatches = 0
         self.last_error = ''
+
+    def prepare(self, model) -> None:
+        """Build and check the plan of ``model`` now (another thread), for ``get`` to pick up."""
+        if model is None:
+            return
+        plan = self._plan
+        if plan is not None and plan.current(model):
+            return
+        self._ready = self._build(model)
 
     def get(self, model) -> Optional[AnswerPlan]:
         """Return the plan of ``model`` (None: answer through the model)."""
         plan = self._plan
         if plan is not None and plan.current(model):
             return plan if self._ok else None
+        ready = self._ready
+        if ready is not None and ready[0] is not None and ready[0].current(model):
+            self._plan, self._ok = ready
+            return ready[0] if ready[1] else None
+        plan, ok = self._build(model)
+        self._plan, self._ok = plan, ok
+        return plan if ok else None
+
+    def _build(self, model) -> tuple:
+        """Return (plan or None, usable) for ``model``."""
         try:
             plan = AnswerPlan(model)
         except Exception as exc:      # noqa: BLE001 - a model without the pieces: its own path
-            self._plan, self._ok = None, False
             self.last_error = f'{type(exc).__name__}: {exc}'
-            return None
+            return None, False
         self.built += 1
         ok = True
         if plan.signature() != self._verified_sig or self.built % self.VERIFY_EVERY == 1:
             ok = self._check(plan)
-        self._plan, self._ok = plan, ok
-        return plan if ok else None
+        return plan, ok
 
     def _check(self, plan: AnswerPlan) -> bool:
         Qd = getattr(plan.post, 'Qd', None)
