@@ -448,7 +448,14 @@ HELP = help_text(
     remaps='remap the input: --ros-args -r generalized_state:=/joint_states')
 
 
+#: the node's GIL switch interval (s): a thread holding the GIL (the snapshot receiver
+#: unpickling and preparing a model, a save) gives it to the message path within this time
+#: (Python's default is 5 ms)
+SWITCH_INTERVAL_S = 0.0005
+
+
 def main(args=None) -> int:
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     return run('estimator', lambda ctx: EstimatorNode(context=ctx), HELP, args)
 
 

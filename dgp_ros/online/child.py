@@ -82,11 +82,35 @@ class LearnerLoop:
         self.ring = SampleRing(width, capacity, self.lock, name=name)
 
     # ------------------------------------------------------------------ loop
+    #: ``DGP_LEARNER_PROFILE=PREFIX``: cProfile the loop, one file per this many seconds
+    PROFILE_WINDOW_S = 20.0
+
+    def _profile_window(self, prof):
+        """Dump a profile window to ``PREFIX.K.prof`` when it is over; return the profile."""
+        prefix = os.environ.get('DGP_LEARNER_PROFILE', '')
+        if not prefix:
+            return None
+        import cProfile
+        now = time.monotonic()
+        if prof is None:
+            self._prof_k, self._prof_t = 0, now
+            prof = cProfile.Profile()
+            prof.enable()
+        elif now - self._prof_t >= self.PROFILE_WINDOW_S or now < 0:
+            prof.disable()
+            prof.dump_stats(f'{prefix}.{self._prof_k}.prof')
+            self._prof_k, self._prof_t = self._prof_k + 1, now
+            prof = cProfile.Profile()
+            prof.enable()
+        return prof
+
     def run(self) -> None:
         if self.learner is None:
             return
+        prof = None
         try:
             while True:
+                prof = self._profile_window(prof)
                 if not self._commands():
                     break
                 busy = self._samples()
@@ -98,6 +122,9 @@ class LearnerLoop:
         except (EOFError, OSError, BrokenPipeError):
             pass                          # the node is gone
         finally:
+            if prof is not None:
+                prof.disable()
+                prof.dump_stats(f'{os.environ["DGP_LEARNER_PROFILE"]}.{self._prof_k}.prof')
             if self.ring is not None:
                 self.ring.close()
 

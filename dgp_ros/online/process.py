@@ -136,6 +136,7 @@ class LearnerProcess:
             ring = SampleRing(1 + 3 * self._N, self.RING_ROWS, lock)
         cmd_r, cmd_w = ctx.Pipe(duplex=False)
         out_r, out_w = ctx.Pipe(duplex=False)
+        _grow_pipe(out_w)
         cfg = dataclasses.asdict(self.config)
         ring_info = None if ring is None else (ring.name, ring.width, ring.capacity)
         proc = ctx.Process(target=child_main, name='dgp_learner', daemon=True,
@@ -448,6 +449,19 @@ class LearnerProcess:
             if ring is not None:
                 ring.close()
         self._ring = self._retired = None
+
+
+#: the snapshot pipe's buffer (Linux ``F_SETPIPE_SZ``; 64 KiB by default, 1 MiB at most unless
+#: the administrator allows more): a burst of snapshots waits there, not in the child's write
+PIPE_BYTES = 1 << 20
+
+
+def _grow_pipe(conn) -> None:
+    try:
+        import fcntl
+        fcntl.fcntl(conn.fileno(), getattr(fcntl, 'F_SETPIPE_SZ', 1031), PIPE_BYTES)
+    except (OSError, ImportError, ValueError):
+        pass                                # the OS's default size
 
 
 def _raise(what: str) -> None:

@@ -109,6 +109,17 @@ def test_the_learner_scheduling_is_reported_on_diagnostics(monkeypatch, sched):
         est.close()
 
 
+def test_the_snapshot_pipe_is_grown():
+    import fcntl
+    est = OnlineEstimator(_cfg())
+    try:
+        size = fcntl.fcntl(est._learner._out.fileno(), getattr(fcntl, 'F_GETPIPE_SZ', 1032))
+        limit = int(open('/proc/sys/fs/pipe-max-size').read())
+        assert size == min(1 << 20, limit) or size == 65536      # refused: the default
+    finally:
+        est.close()
+
+
 def test_an_unknown_learner_scheduling_is_refused(monkeypatch):
     monkeypatch.setenv('DGP_LEARNER_SCHED', 'fast')
     with pytest.raises(ValueError, match='DGP_LEARNER_SCHED'):
