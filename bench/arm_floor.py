@@ -97,6 +97,8 @@ def _extras(r: dict) -> dict:
         out['pending_end'] = d.get('samples_pending', '-')
         out['dropped'] = d.get('samples_dropped', '-')
         out['sched'] = d.get('learner_sched', 'nice 10 (before)')
+        out['refits_ok'] = d.get('refits_ok', '-')
+        out['trained'] = d.get('trained') == 'True'
         out['prepare_max'] = d.get('snapshot_prepare_max_ms')
     return out
 
@@ -156,7 +158,8 @@ def section(a, groups: list, wall: float, stream_text: str) -> str:
                             '(issue 33)', 'bench/arm_floor.py', a.quick, wall), '',
              __doc__.split('\n\n', 1)[1].strip(), '', f'Stream: {stream_text}.', '']
     hdr = ['repeat', 'run', 'answered', 'latency p50 / p99 / max ms',
-           'p50 / p99 vs relay', 'p99 first / last third ms', 'learned/s (queued at end)',
+           'p50 / p99 vs relay', 'p99 first / last third ms',
+           'learned/s (queued at end), refits ok',
            'held-out NMSE', 'first swap max ms', 'get_parameters p50 / max ms',
            '~/refit p50 / max ms', 'bg cores', 'load']
     rows, checks = [], []
@@ -176,24 +179,28 @@ def section(a, groups: list, wall: float, stream_text: str) -> str:
                                'answered': s['answered'], 'first': s.get('p99_first'),
                                'last': s.get('p99_last'), 'learned': s.get('learned_per_s'),
                                'held': s.get('heldout'), 'swap': s.get('swap_first_max'),
+                               'trained': s.get('trained'),
                                'gp': s.get('probe_get_parameters'),
                                'refit': s.get('probe_refit'), 'bg': s['bg'],
                                'load': s['load']})
             learned = '-' if s.get('learned_per_s') is None else \
-                f'{s["learned_per_s"]:.0f} ({s.get("pending_end", "-")})'
+                f'{s["learned_per_s"]:.0f} ({s.get("pending_end", "-")}), {s["refits_ok"]}'
+            held = C.fmt(s.get('heldout')) if s.get('heldout') is not None else \
+                ('no model saved (none trained)' if r.get('node') == 'estimator' else '-')
             rows.append([g['name'], r['label'], f'{100 * s["answered"]:.2f} %',
                          f'{fmt_ms(s["lat_p50"])} / {fmt_ms(s["lat_p99"])} / '
                          f'{fmt_ms(s["lat_max"])}',
                          '-' if rm is None else f'{rm:.2f}x / {rp:.2f}x',
                          f'{fmt_ms(s.get("p99_first"))} / {fmt_ms(s.get("p99_last"))}',
-                         learned, C.fmt(s.get('heldout')), fmt_ms(s.get('swap_first_max')),
+                         learned, held, fmt_ms(s.get('swap_first_max')),
                          _probe(s, 'get_parameters'), _probe(s, 'refit'),
                          f'{s["bg"]:.2f}', f'{s["load"]:.2f}'])
     lines += [C.md_table(hdr, rows), '']
     lines += ['### Against the targets', '', C.md_table(
         ['duration, run', 'runs', 'answered min', 'p50 / relay max (<= 2)',
          'p99 / relay median, max (<= 3)', 'p99 last / first third median, max',
-         'learned/s median', 'held-out NMSE median', 'first swap max ms median, max',
+         'learned/s median', 'trained at the end', 'held-out NMSE median',
+         'first swap max ms median, max',
          'get_parameters max ms', '~/refit max ms', 'bg cores median'], _target_rows(checks)),
               '']
     return '\n'.join(lines)
@@ -216,6 +223,7 @@ def _target_rows(checks: list) -> list:
                      f'{100 * min(c["answered"] for c in cs):.2f} %', mx(rm),
                      f'{med(rp)}, {mx(rp)}', f'{med(gr)}, {mx(gr)}',
                      med([c['learned'] for c in cs if c['learned'] is not None]),
+                     f'{sum(1 for c in cs if c["trained"])} of {len(cs)}',
                      med([c['held'] for c in cs if c['held'] is not None]),
                      f'{med(sw)}, {mx(sw)}', mx(gp), mx(rf),
                      med([c['bg'] for c in cs])])
