@@ -383,7 +383,7 @@ def estimator(a, ros_args) -> int:
         def estimate(self, snap, Q):
             v = getattr(snap, 'version', None)
             if v is not None and (not swaps or swaps[-1][1] != v):
-                swaps.append((time.time(), v))
+                swaps.append((time.time(), v, getattr(snap, 'model', None) is not None))
             return est_fn(self, snap, Q)
         OE.OnlineEstimator._estimate = estimate
     except (ImportError, AttributeError):
