@@ -203,7 +203,8 @@ def section(a, groups: list, wall: float, stream_text: str) -> str:
     thdr = ['duration, run', 'runs', 'answered min', 'p50 / relay max (<= 2)',
             'p99 / relay median, max (<= 3)', 'p99 last / first third median, max',
             'learned/s median', 'trained at the end', 'held-out NMSE median',
-            'first model swap max latency ms median, max', 'get_parameters max ms', '~/refit max ms',
+            'first model swap max latency ms median, max', 'get_parameters max ms',
+            '~/refit max ms',
             'bg cores median']
     lines += ['### Against the targets', '',
               f'Met: every run answered everything; the largest median ratio at most '
