@@ -28,8 +28,8 @@ from collections import deque
 import dataclasses
 import itertools
 import multiprocessing
+from multiprocessing.reduction import ForkingPickler
 import os
-import pickle
 import signal
 import threading
 import time
@@ -180,7 +180,7 @@ class LearnerProcess:
             try:
                 buf = conn.recv_bytes()
                 t0 = time.perf_counter()
-                msg = pickle.loads(buf)
+                msg = ForkingPickler.loads(buf)      # what Connection.recv does, timed
                 received = time.perf_counter() - t0
             except (EOFError, OSError):
                 break
