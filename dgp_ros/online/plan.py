@@ -13,8 +13,9 @@ into) and computes the same mean:
 
 * the scaled squared distances of the queries to every training point, for every element, in one
   product (float64, exact differences as ``kernels.se_ard`` does for a few queries);
-* ``exp`` only where the exponent is above ``EXP_FLOOR`` (below it the kernel is < 1e-260: it
-  adds nothing a float64 answer can hold), summed per element;
+* ``exp`` of every exponent clamped at ``EXP_FLOOR`` (out of numpy's slow underflow path), the
+  ones below it zeroed (the kernel there is < 1e-260: it adds nothing a float64 answer can
+  hold), summed per element;
 * the prior, the correction weight ``w(q)`` and the passivity policy's ``finalize`` (projection,
   eigenvalue floor) are the model's own, called as the model calls them, in float64: an answer is
   exactly as passive as the model's.
@@ -57,7 +58,7 @@ class AnswerPlan:
         sf2 = np.exp(np.asarray(hp.log_sf2, float))
         phi = np.where(ard[None, :], 1.0, p.X[:, self.cols])                  # (n, E)
         V = (phi * p.weights[:, self.rows]).T * (sf2 > 0.0)[:, None]           # (E, n)
-        self.vt = np.ascontiguousarray((V * sf2[:, None]).T).ravel()          # (n * E,)
+        self.V = np.ascontiguousarray((V * sf2[:, None]).T)                  # (n, E)
         self.W = np.ascontiguousarray(-0.5 * np.exp(-2.0 * np.asarray(hp.log_ls, float)).T)
         self.X = p.X
         self.sx, self.sy = np.asarray(hp.sx, float), np.asarray(hp.sy, float)
@@ -80,15 +81,17 @@ class AnswerPlan:
     def _weights(self, X: np.ndarray) -> np.ndarray:
         """Element weights G (k, N, N) at standardized queries X (k, N): ``_element_weights``."""
         k = X.shape[0]
-        n, E = self.X.shape[0], self.E
         d = X[:, None, :] - self.X[None, :, :]                      # (k, n, N)
         d *= d
         A = d @ self.W                                              # (k, n, E) exponents
-        i = np.flatnonzero(A > EXP_FLOOR)                           # flat (k, n, E)
-        vals = np.exp(A.ravel().take(i))
-        nE = n * E
-        vals *= self.vt.take(i % nE)
-        Gf = np.bincount((i // nE) * E + i % E, vals, k * E).reshape(k, E)
+        # dense: on a 7-joint arm 92 % of the exponents are above the floor, and one exp over
+        # all of them (clamped out of the slow underflow path, the rest zeroed) took half the
+        # time of gathering the few that matter
+        keep = A > EXP_FLOOR
+        np.maximum(A, EXP_FLOOR, out=A)
+        np.exp(A, out=A)
+        A *= keep
+        Gf = np.einsum('kne,ne->ke', A, self.V)
         G = np.zeros((k, self.N, self.N))
         G[:, self.rows, self.cols] = Gf
         return G
