@@ -22,6 +22,9 @@ log after 7.5 s against ``tau_friction_offline``), the latency max around the fi
 swap that stalled the answers for 42-77 ms before), and the service round trips of a
 prober calling ``get_parameters`` every 0.2 s and ``~/refit`` every 2 s (in the relay runs
 ``get_parameters`` of the relay node). Background CPU and load average as in arm_live.
+
+Issue 33's protocol: ``--durations 20,60 --repeat 5 --repeat-long 3 --before-rev REV`` (the
+code of REV runs once per duration: the swap silence before).
 """
 from __future__ import annotations
 
