@@ -165,8 +165,8 @@ def relay(a) -> None:
     Answer each JointState with a JointState from a bare rclpy node: the floor.
 
     Subscribes like the estimator (best effort, depth 1000), publishes on its answer topic (depth
-    256) header, names, velocity and effort of each measurement, spun by rclpy's own
-    SingleThreadedExecutor: what any rclpy node pays per message, with nothing of ours
+    1024, as the estimator) header, names, velocity and effort of each measurement, spun by rclpy's
+    own SingleThreadedExecutor: what any rclpy node pays per message, with nothing of ours
     (``DGP_EXECUTOR=waitset``: the node's wait-set loop instead).
     """
     stop = _stop_event()
@@ -178,7 +178,7 @@ def relay(a) -> None:
     ctx = rclpy.Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('dgp_estimator', context=ctx)
-    pub = node.create_publisher(JointState, '~/damping_force', 256)
+    pub = node.create_publisher(JointState, '~/damping_force', 1024)
 
     def on_state(m):
         out = JointState()
