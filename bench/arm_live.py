@@ -76,6 +76,9 @@ class Scenario:
     refit_period: float = 0.0
     kills: int = 0
     heldout: bool = False
+    node: str = 'estimator'                      # or 'relay' (the floor, bench/arm_floor.py)
+    stream: str = ''                             # the real Panda's folder: its residual plays
+    env: Dict[str, str] = field(default_factory=dict)     # more environment of the estimator
 
 
 def _extra(p):
@@ -194,12 +197,14 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
     est_env = dict(env, PYTHONPATH=sc.tree or C.REPO)
     if sc.executor:
         est_env['DGP_EXECUTOR'] = sc.executor
+    est_env.update(sc.env)
     py = sys.executable
     f = lambda n: os.path.join(d, n)  # noqa: E731
     procs = []
 
     def start(name, args, log):
-        pr = subprocess.Popen([py, PROCS] + args, env=est_env if name == 'estimator' else env,
+        pr = subprocess.Popen([py, PROCS] + args,
+                              env=est_env if name in ('estimator', 'relay') else env,
                               stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
                               cwd=d)
         procs.append((name, pr))
@@ -211,6 +216,9 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
     model_path = f('arm.npz')
     params = {'inverse_dynamics': 'urdf', 'urdf_file': urdf, 'joints': json.dumps(names),
               'model_path': model_path, 'diagnostics_period_s': '0.5'}
+    if sc.stream:                       # a residual: the estimator's defaults, no dynamics
+        params = {'joints': json.dumps(names), 'model_path': model_path,
+                  'diagnostics_period_s': '0.5'}
     if a.passivity:
         params['passivity'] = a.passivity
     if a.queue_depth:
@@ -220,7 +228,10 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
     for k, v in params.items():
         ros += ['-p', f'{k}:={v}']
     est_log = open(f('estimator.log'), 'w')
-    est = start('estimator', ['estimator', '--cpu-out', f('est_cpu.json')] + ros, est_log)
+    if sc.node == 'relay':
+        est = start('relay', ['relay'], est_log)
+    else:
+        est = start('estimator', ['estimator', '--cpu-out', f('est_cpu.json')] + ros, est_log)
     watch.track('estimator', est.pid)
     lis = start('listener', ['listener', '--out', f('listener.npz'), '--ready', f('lis.ready')],
                 open(f('listener.log'), 'w'))
@@ -244,8 +255,9 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
                 raise RuntimeError(f'{sc.name}: listener/estimator did not come up '
                                    f'(see {d})')
             time.sleep(0.1)
+        stream = ['--stream', sc.stream, '--seconds', str(seconds)] if sc.stream else []
         player = start('player', ['player', '--phases', sc.phases, '--out', f('player.json'),
-                                  '--ready', f('player.ready'), '--wait', '90'],
+                                  '--ready', f('player.ready'), '--wait', '90'] + stream,
                        open(f('player.log'), 'w'))
         watch.track('player', player.pid)
         while not os.path.exists(f('player.ready')) and player.poll() is None:

@@ -20,6 +20,9 @@ The processes of bench/arm_live.py, one role each: player, listener, prober, est
   message callback to the end of the last, and the callbacks' share, as JSON (``--cpu-out``):
   the same split for the code before and after a change.
 * ``hog``: one busy loop (another process keeping a core busy).
+* ``relay``: the floor (issue 33), a bare rclpy node answering each measurement with a
+  JointState on the estimator's answer topic; ``player --stream DIR`` plays the real Panda's
+  residual (``real_stream``) instead of the simulation.
 
 Each writes its results when it gets SIGINT or SIGTERM (``--out``), and ``--ready`` once set up.
 """
@@ -68,6 +71,14 @@ def player(a) -> None:
     # the messages first (the publishing loop only stamps and publishes)
     msgs, offsets = [], []
     t_sim = 0.0
+    if a.stream:                                 # the real Panda's residual (real_stream)
+        phases = []
+        for t, q, v, e in real_stream(a.stream, a.seconds):
+            m = JointState()
+            m.name = names[:7]
+            m.position, m.velocity, m.effort = (array('d', x.tolist()) for x in (q, v, e))
+            msgs.append(m)
+            offsets.append(float(t))
     for rate, secs in phases:
         d = simulate_arm('panda', secs, rate_hz=rate, seed=a.seed, t0_s=t_sim)
         for t, q, v, e in zip(d['t'], d['q'], d['qd'], d['effort']):
@@ -115,6 +126,78 @@ def player(a) -> None:
                         'late_p99_ms': float(np.percentile(late, 99) * 1e3),
                         'late_max_ms': float(late.max() * 1e3),
                         'seconds': float(offsets[n - 1]) if n else 0.0})
+    node.destroy_node()
+    ctx.try_shutdown()
+
+
+#: the real Panda's log: its first REAL_SPLIT_S s are played (looped), the rest is held out
+REAL_SPLIT_S = 7.5
+
+
+def real_stream(path: str, seconds: float):
+    """
+    Yield (t, q, qd, residual) of the real Panda's log for ``seconds`` s at its own timing.
+
+    ``panda_log_train.npz`` of ``path`` (read there, never copied): its part before
+    ``REAL_SPLIT_S`` s (the rest is held out), looped, at the logger's own jittered intervals
+    (0.7 to 15 ms, median 1 ms); effort = the friction residual ``tau_friction_offline``
+    (what the estimator learns with its defaults, no inverse dynamics).
+    """
+    import numpy as np
+    z = np.load(os.path.join(path, 'panda_log_train.npz'), allow_pickle=False)
+    t = z['t'] - z['t'][0]
+    keep = t < REAL_SPLIT_S
+    t, q, qd, r = t[keep], z['q'][keep], z['qd'][keep], z['tau_friction_offline'][keep]
+    period = t[-1] + float(np.median(np.diff(t)))
+    k = 0
+    while True:
+        for i in range(len(t)):
+            ti = k * period + t[i]
+            if ti > seconds:
+                return
+            yield ti, q[i], qd[i], r[i]
+        k += 1
+
+
+# ----------------------------------------------------------------------------- relay
+def relay(a) -> None:
+    """
+    Answer each JointState with a JointState from a bare rclpy node: the floor.
+
+    Subscribes like the estimator (best effort, depth 1000), publishes on its answer topic (depth
+    1024, as the estimator) header, names, velocity and effort of each measurement, spun by rclpy's
+    own SingleThreadedExecutor: what any rclpy node pays per message, with nothing of ours
+    (``DGP_EXECUTOR=waitset``: the node's wait-set loop instead).
+    """
+    stop = _stop_event()
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import JointState
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node('dgp_estimator', context=ctx)
+    pub = node.create_publisher(JointState, '~/damping_force', 1024)
+
+    def on_state(m):
+        out = JointState()
+        out.header = m.header
+        out.name = m.name
+        out.velocity = m.velocity
+        out.effort = m.effort
+        pub.publish(out)
+    node.create_subscription(JointState, TOPIC_IN, on_state,
+                             QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT))
+    if os.environ.get('DGP_EXECUTOR') == 'waitset':      # the node's own loop instead
+        from dgp_ros.nodes.executor import WaitSetExecutor
+        ex = WaitSetExecutor(context=ctx)
+    else:
+        ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    while not stop.is_set():
+        ex.spin_once(timeout_sec=0.1)
+    ex.shutdown()
     node.destroy_node()
     ctx.try_shutdown()
 
@@ -291,6 +374,20 @@ def estimator(a, ros_args) -> int:
             if dt > 0.005:
                 gcs.append((info.get('generation'), round(dt * 1e3, 1), round(time.time(), 3)))
     gc.callbacks.append(on_gc)
+    # model swaps as the message path sees them: the first answer from each new snapshot
+    swaps = []
+    try:
+        from dgp_ros.online import estimator as OE
+        est_fn = OE.OnlineEstimator._estimate
+
+        def estimate(self, snap, Q):
+            v = getattr(snap, 'version', None)
+            if v is not None and (not swaps or swaps[-1][1] != v):
+                swaps.append((time.time(), v, getattr(snap, 'model', None) is not None))
+            return est_fn(self, snap, Q)
+        OE.OnlineEstimator._estimate = estimate
+    except (ImportError, AttributeError):
+        pass
     init = E.EstimatorNode.__init__
 
     def keep(self, *args, **kw):
@@ -312,7 +409,7 @@ def estimator(a, ros_args) -> int:
                             'received': received,
                             'executor': os.environ.get('DGP_EXECUTOR', ''),
                             'slow_callbacks': slow[-200:], 'gc_pauses': gcs[-200:],
-                            'diag_times': diag_t})
+                            'diag_times': diag_t, 'swaps': swaps[-5000:]})
     return code
 
 
@@ -323,7 +420,8 @@ def hog(a) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    p.add_argument('role', choices=['player', 'listener', 'prober', 'estimator', 'hog'])
+    p.add_argument('role', choices=['player', 'listener', 'prober', 'estimator', 'hog',
+                                    'relay'])
     p.add_argument('--out', default='')
     p.add_argument('--ready', default='')
     p.add_argument('--phases', default='1000:20')
@@ -333,6 +431,9 @@ def main() -> int:
     p.add_argument('--probe-period', type=float, default=0.0)
     p.add_argument('--refit-period', type=float, default=0.0)
     p.add_argument('--cpu-out', default='')
+    p.add_argument('--stream', default='',
+                   help="player: the real Panda log's folder (real_stream) instead of --phases")
+    p.add_argument('--seconds', type=float, default=20.0, help='player: length of --stream')
     argv = sys.argv[1:]
     ros = []
     if '--ros-args' in argv:
@@ -345,6 +446,8 @@ def main() -> int:
         listener(a)
     elif a.role == 'estimator':
         return estimator(a, ros)
+    elif a.role == 'relay':
+        relay(a)
     else:
         hog(a)
     return 0

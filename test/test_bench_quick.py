@@ -201,3 +201,23 @@ def test_arm_live_quick(tmp_path):
     assert rows['estimator exit status after SIGINT (model saved)'] == '0'
     assert rows['negative power in 10^5 random velocities'] == '0'
     assert 'messages missing (from stamp gaps)' in ' '.join(rows)
+
+
+@pytest.mark.slow
+def test_arm_floor_quick(tmp_path):
+    """
+    Smoke-test arm_floor: the relay and the estimator on the same stream, the ratios beside.
+
+    Both answer (the relay its row first), the estimator's row has its ratio to the relay and its
+    learner's scheduling is reported; no latency is asserted (issue 33's targets are figures).
+    """
+    data = os.path.join(REPO, '..', 'shared', 'data', 'panda_real', 'panda_log_train.npz')
+    if not os.path.exists(data):
+        pytest.skip('the real Panda log (../shared/data/panda_real) is not here')
+    run('arm_floor.py', tmp_path)
+    s = section(tmp_path, 'arm_floor')
+    rows = [r for r in table_rows(s, ()) if len(r) > 10 and r[0].startswith('4 s #')]
+    assert rows and 'relay' in rows[0][1], s
+    assert all(numbers(r[2])[0] > 0 for r in rows), rows
+    est = [r for r in rows if 'estimator' in r[1]]
+    assert est and all(r[4].endswith('x') for r in est), est

@@ -25,11 +25,11 @@ process exits 0 (``nodes.runtime``).
 """
 from __future__ import annotations
 
-from array import array
 from collections import deque
 import dataclasses
 import os
 import sys
+import threading
 import time
 from typing import List
 
@@ -39,11 +39,12 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
+from std_msgs.msg import Float64, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from dgp_ros.messages import joint_state_sample
 from dgp_ros.nodes.executor import DeferredResponse, WaitSetExecutor
+from dgp_ros.nodes.outputs import damping_matrix_msg, joint_state, Reused
 from dgp_ros.nodes.runtime import (check_unknown_overrides, declare_parameters, help_text,
                                    reject_unknown, run, set_batch_handler)
 from dgp_ros.online import ERROR, EstimatorConfig, OK, OnlineEstimator, WARN
@@ -53,57 +54,6 @@ NODE_NAME = 'dgp_estimator'
 #: stamp -> answer ages beyond this are stamps of another clock (a replayed bag): not latency
 AGE_PLAUSIBLE_S = 60.0
 _CONFIG_FIELDS = {f.name for f in dataclasses.fields(EstimatorConfig)}
-
-
-def damping_matrix_msg(D) -> Float64MultiArray:
-    """N x N row-major Float64MultiArray with dims rows/cols (size and stride)."""
-    n_rows, n_cols = D.shape
-    msg = Float64MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label='rows', size=n_rows, stride=n_rows * n_cols),
-                      MultiArrayDimension(label='cols', size=n_cols, stride=n_cols)]
-    msg.layout.data_offset = 0
-    msg.data = D.ravel().tolist()
-    return msg
-
-
-def _doubles(a) -> array:
-    """Return a float64 sequence as the array('d') a message field takes unchecked."""
-    out = array('d')
-    out.frombytes(np.ascontiguousarray(a, dtype=np.float64).tobytes())
-    return out
-
-
-def _joint_state(header, names, position=(), velocity=(), effort=()) -> JointState:
-    m = JointState()
-    m.header = header
-    m.name = names
-    m.position = _doubles(position)
-    m.velocity = _doubles(velocity)
-    m.effort = _doubles(effort)
-    return m
-
-
-class _Reused:
-    """
-    One JointState per output topic, filled again for every answer (``publish`` serializes it).
-
-    The names are set only when they change; the arrays go in as ``array('d')`` (the setter takes
-    them unchecked): about 2 us per message against 6 to 11 for a new message with lists.
-    """
-
-    def __init__(self):
-        self.msg = JointState()
-        self._names = None
-
-    def fill(self, header, names, velocity, effort) -> JointState:
-        m = self.msg
-        m.header = header
-        if names is not self._names:
-            m.name = names
-            self._names = names
-        m.velocity = _doubles(velocity)
-        m.effort = _doubles(effort)
-        return m
 
 
 def _process_cpu_ns() -> int:
@@ -116,6 +66,8 @@ class EstimatorNode(Node):
 
     #: most messages answered per wake-up (timers and services are served between batches)
     MAX_BATCH = 64
+    #: history depth of the per-message outputs (module docstring of the publishers)
+    ANSWER_HISTORY = 1024
 
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, allow_undeclared_parameters=True, **kwargs)
@@ -139,8 +91,11 @@ class EstimatorNode(Node):
         # the wait-set executor (nodes.runtime) hands over every message waiting at once
         set_batch_handler(self.sub, self._on_states, self.MAX_BATCH)
         # a wake-up answers up to MAX_BATCH messages at once: the history of every per-message
-        # output holds a few such bursts (a reliable reader gets all of them)
-        out = 4 * self.MAX_BATCH
+        # output holds a second of a 1 kHz stream (a reliable reader gets all of them): after a
+        # stall of the whole machine the node answers what waited in back-to-back bursts,
+        # faster than a reader stalled with it acknowledges (at 4 x MAX_BATCH, 2.4 % of the
+        # answers were lost to a 0.26 s stall of every process, bench/arm_floor.py)
+        out = self.ANSWER_HISTORY
         self.pub_force = self.create_publisher(JointState, '~/damping_force', out)
         self.pub_std = self.create_publisher(JointState, '~/damping_force_stddev', out)
         self.pub_D = self.create_publisher(Float64MultiArray, '~/damping_matrix', out)
@@ -163,9 +118,10 @@ class EstimatorNode(Node):
                            durability=DurabilityPolicy.TRANSIENT_LOCAL))
             self.get_logger().info('inverse_dynamics=urdf without robot_description or '
                                    'urdf_file: waiting for the URDF on /robot_description')
+        self._service_lock = threading.Lock()    # ~/save_model and ~/reset, one at a time
         self._last_msg_time = None
         self._age = deque(maxlen=1000)        # stamp -> answer, node clock (s)
-        self._out = {k: _Reused() for k in ('force', 'std', 'D')}
+        self._out = {k: Reused() for k in ('force', 'std', 'D')}
         self._power = Float64()
         self._want_power = True
         self._names_out: tuple = ((), [])     # (estimate's names, the list the messages carry)
@@ -337,7 +293,7 @@ class EstimatorNode(Node):
             h.frame_id = hdr.frame_id
             h.stamp.sec = int(r.stamp_s // 1)
             h.stamp.nanosec = min(int(round((r.stamp_s % 1) * 1e9)), 999_999_999)
-            self.pub_residual.publish(_joint_state(h, names, r.q, r.qd, r.residual))
+            self.pub_residual.publish(joint_state(h, names, r.q, r.qd, r.residual))
         age = (now.nanoseconds - (hdr.stamp.sec * 10 ** 9 + hdr.stamp.nanosec)) * 1e-9
         if abs(age) < AGE_PLAUSIBLE_S:       # stamps on this clock (not a bag's own time base)
             self._age.append(age)
@@ -399,8 +355,8 @@ class EstimatorNode(Node):
         self.pub_diag.publish(arr)
         model = self.estimator.model
         if model is not None and self.estimator.config.bias and self.estimator.names:
-            self.pub_bias.publish(_joint_state(arr.header, self.estimator.names, (), (),
-                                               model.bias_.tolist()))
+            self.pub_bias.publish(joint_state(arr.header, self.estimator.names, (), (),
+                                              model.bias_.tolist()))
 
     # ------------------------------------------------------------ services
     def _srv_refit(self, request, response):
@@ -432,17 +388,45 @@ class EstimatorNode(Node):
     REFIT_REPLY_S = 0.02
 
     def _srv_reset(self, request, response):
+        return self._in_thread(response, self._reset)
+
+    def _reset(self, response):
         self.estimator.reset()
         response.success, response.message = True, 'estimator reset: model, buffer and counters'
-        return response
 
     def _srv_save(self, request, response):
+        return self._in_thread(response, self._save)
+
+    def _save(self, response):
         try:
             path = self.estimator.save()
             response.success, response.message = True, f'saved to {path}'
         except (ValueError, RuntimeError, OSError) as exc:
             response.success, response.message = False, str(exc)
-        return response
+
+    def _in_thread(self, response, work):
+        """
+        Run a service's ``work(response)`` in a thread of its own and answer when it is done.
+
+        A save or a reset waits for the learner process (a save writes the file there, a refit
+        may be running): the executor's thread goes on answering messages and serving the other
+        services meanwhile. One at a time (a second waits for the first). With rclpy's
+        executors the work runs in the callback.
+        """
+        if not isinstance(self.executor, WaitSetExecutor):
+            work(response)
+            return response
+        later = DeferredResponse()
+
+        def run():
+            with self._service_lock:
+                try:
+                    work(response)
+                except Exception as exc:    # noqa: BLE001 - the caller gets the reason
+                    response.success, response.message = False, f'{type(exc).__name__}: {exc}'
+            later.send(response)
+        threading.Thread(target=run, name='dgp_service', daemon=True).start()
+        return later
 
     def shutdown(self) -> None:
         """
@@ -469,7 +453,14 @@ HELP = help_text(
     remaps='remap the input: --ros-args -r generalized_state:=/joint_states')
 
 
+#: the node's GIL switch interval (s): a thread holding the GIL (the snapshot receiver
+#: unpickling and preparing a model, a save) gives it to the message path within this time
+#: (Python's default is 5 ms)
+SWITCH_INTERVAL_S = 0.0005
+
+
 def main(args=None) -> int:
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     return run('estimator', lambda ctx: EstimatorNode(context=ctx), HELP, args)
 
 

@@ -45,8 +45,9 @@ class LearnerLoop:
     STATUS_PERIOD_S = 0.25
 
     def __init__(self, cfg: dict, cmd, out, lock, ring_info, init, variance: bool,
-                 residuals: bool):
+                 residuals: bool, sched: str = ''):
         self.cmd, self.out, self.lock = cmd, out, lock
+        self.sched = sched              # what ``lower_priority`` got (the status says it)
         self.variance, self.residuals = variance, residuals
         self.ring = None
         self.sent_version = -1
@@ -75,17 +76,41 @@ class LearnerLoop:
         self.out.send(('ready', {'joint_names': L.joint_names(),
                                  'needs_position': L.needs_position,
                                  'load_error': L.load_error, 'snapshot': snap,
-                                 'status': L.status()}))
+                                 'status': self._status()}))
 
     def _attach(self, name, width, capacity) -> None:
         self.ring = SampleRing(width, capacity, self.lock, name=name)
 
     # ------------------------------------------------------------------ loop
+    #: ``DGP_LEARNER_PROFILE=PREFIX``: cProfile the loop, one file per this many seconds
+    PROFILE_WINDOW_S = 20.0
+
+    def _profile_window(self, prof):
+        """Dump a profile window to ``PREFIX.K.prof`` when it is over; return the profile."""
+        prefix = os.environ.get('DGP_LEARNER_PROFILE', '')
+        if not prefix:
+            return None
+        import cProfile
+        now = time.monotonic()
+        if prof is None:
+            self._prof_k, self._prof_t = 0, now
+            prof = cProfile.Profile()
+            prof.enable()
+        elif now - self._prof_t >= self.PROFILE_WINDOW_S or now < 0:
+            prof.disable()
+            prof.dump_stats(f'{prefix}.{self._prof_k}.prof')
+            self._prof_k, self._prof_t = self._prof_k + 1, now
+            prof = cProfile.Profile()
+            prof.enable()
+        return prof
+
     def run(self) -> None:
         if self.learner is None:
             return
+        prof = None
         try:
             while True:
+                prof = self._profile_window(prof)
                 if not self._commands():
                     break
                 busy = self._samples()
@@ -97,6 +122,9 @@ class LearnerLoop:
         except (EOFError, OSError, BrokenPipeError):
             pass                          # the node is gone
         finally:
+            if prof is not None:
+                prof.disable()
+                prof.dump_stats(f'{os.environ["DGP_LEARNER_PROFILE"]}.{self._prof_k}.prof')
             if self.ring is not None:
                 self.ring.close()
 
@@ -152,7 +180,7 @@ class LearnerLoop:
                 size = 8.0 * n * N * (4 + (n if self.variance else 0))
                 self.period = max(self.SNAPSHOT_PERIOD_S, size / self.SNAPSHOT_BYTES_PER_S)
         if self.waits and not L.refit_running() and L.version == self.sent_version:
-            self.out.send(('status', L.status()))        # arrives before the reply
+            self.out.send(('status', self._status()))        # arrives before the reply
             self.status_at = now
             for i, _ in self.waits:
                 self.out.send(('reply', i, True, self.sent_version))
@@ -166,8 +194,13 @@ class LearnerLoop:
                     keep.append((i, deadline))
             self.waits = keep
         if now - self.status_at >= self.STATUS_PERIOD_S:
-            self.out.send(('status', L.status()))
+            self.out.send(('status', self._status()))
             self.status_at = now
+
+    def _status(self) -> dict:
+        d = self.learner.status()
+        d['learner_sched'] = self.sched
+        return d
 
     # ------------------------------------------------------------------ commands
     def _commands(self) -> bool:
@@ -225,7 +258,7 @@ class LearnerLoop:
         if L.version != self.sent_version:
             self.out.send(('snapshot', L.snapshot(variance=self.variance, frozen=True)))
             self.sent_version, self.sent_at = L.version, time.monotonic()
-        self.out.send(('status', L.status()))
+        self.out.send(('status', self._status()))
         self.out.send(('reply', i, ok, what))
 
     @staticmethod
@@ -233,15 +266,39 @@ class LearnerLoop:
         return dataclasses.replace(EstimatorConfig.from_dict(d), refit_mode='async')
 
 
+#: the learner's scheduling: 'idle' (SCHED_IDLE where allowed, else nice) or 'nice'
+SCHED_CHOICES = ('idle', 'nice')
+
+
+def lower_priority(sched: str, nice: int) -> str:
+    """
+    Put this process below the message path; return what it got ('idle' or 'nice N').
+
+    'idle': ``SCHED_IDLE`` (it runs only when no other process of the machine wants the CPU: the
+    node's wake-ups never wait for it, and with no idle CPU it learns less, never answers late),
+    falling back to ``os.nice(nice)`` where the OS refuses it; 'nice': ``os.nice(nice)`` only.
+    """
+    if sched not in SCHED_CHOICES:
+        raise ValueError(f'learner scheduling {sched!r}: one of ' + ', '.join(SCHED_CHOICES))
+    if sched == 'idle' and hasattr(os, 'SCHED_IDLE'):
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+            return 'idle'
+        except (OSError, AttributeError):
+            pass
+    try:
+        got = os.nice(nice)
+    except OSError:
+        return 'normal'
+    return f'nice {got}'
+
+
 def child_main(cfg: dict, cmd, out, lock, ring_info, init, nice: int, variance: bool,
-               residuals: bool) -> None:
+               residuals: bool, sched: str = 'idle') -> None:
     """Run a Learner on the ring's samples: the child process (module docstring)."""
     # Ctrl-C and a SIGTERM to the process group are the node's to handle: it saves through
     # this process, then stops it. The child ends when the node's pipe closes (the node died).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    try:
-        os.nice(nice)
-    except OSError:
-        pass
-    LearnerLoop(cfg, cmd, out, lock, ring_info, init, variance, residuals).run()
+    got = lower_priority(sched, nice)
+    LearnerLoop(cfg, cmd, out, lock, ring_info, init, variance, residuals, got).run()

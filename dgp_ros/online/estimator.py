@@ -68,7 +68,9 @@ class OnlineEstimator:
         self._plans = PlanCache()             # the lean pass of the snapshot answered from
         if self.config.refit_mode == 'process':
             from .process import LearnerProcess
-            self._learner = LearnerProcess(self.config)
+            # a new snapshot's answer plan is built in the receiver thread, before the swap
+            self._learner = LearnerProcess(
+                self.config, prepare=lambda snap: self._plans.prepare(snap.model))
         else:
             self._learner = Learner(self.config, model_factory, model_loader)
         self._init_state()
@@ -370,6 +372,12 @@ class OnlineEstimator:
 
     def reset(self) -> None:
         """Forget the model, the buffer and all counters (a running refit is discarded)."""
+        if self.config.refit_mode == 'process':
+            # the learner process's reply is waited for outside the message path's lock
+            self._learner.reset()
+            with self._lock:
+                self._init_state()
+            return
         with self._lock:
             self._learner.reset()
             self._init_state()

@@ -28,6 +28,7 @@ from collections import deque
 import dataclasses
 import itertools
 import multiprocessing
+from multiprocessing.reduction import ForkingPickler
 import os
 import signal
 import threading
@@ -36,9 +37,10 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .child import child_main
+from .child import child_main, SCHED_CHOICES
 from .config import EstimatorConfig
 from .ring import SampleRing
+from .snapshot import SwapLog
 
 __all__ = ['LearnerProcess']
 
@@ -65,7 +67,14 @@ class LearnerProcess:
         The learner's configuration (its ``refit_mode`` is replaced by 'async' in the child:
         jobs there run in a thread beside the sample loop).
     nice : int
-        Niceness increment of the child (``os.nice``).
+        Niceness increment of the child (``os.nice``) where it runs at nice.
+    sched : str or None
+        'idle' (``SCHED_IDLE`` where the OS allows it, else nice) or 'nice'; None: the
+        environment's ``DGP_LEARNER_SCHED``, else 'idle'. ``status()['learner_sched']`` says
+        what the child got.
+    prepare : callable or None
+        ``prepare(snapshot)``, called in the receiver thread before a new snapshot is installed:
+        builds what answering from it needs (``PlanCache.prepare``) off the message path.
 
     Raises
     ------
@@ -78,9 +87,16 @@ class LearnerProcess:
     START_TIMEOUT_S = 120.0             # the first start also starts the fork server
     REPLY_TIMEOUT_S = 30.0
 
-    def __init__(self, config: EstimatorConfig, nice: int = 10):
+    def __init__(self, config: EstimatorConfig, nice: int = 10, sched: Optional[str] = None,
+                 prepare=None):
         self.config = config
         self.nice = int(nice)
+        sched = sched or os.environ.get('DGP_LEARNER_SCHED', '') or 'idle'
+        if sched not in SCHED_CHOICES:
+            raise ValueError(f'DGP_LEARNER_SCHED={sched!r}: one of ' + ', '.join(SCHED_CHOICES))
+        self.sched = sched
+        self.prepare = prepare
+        self.swaps = SwapLog()
         self._lock = threading.Lock()
         self._replies: dict = {}
         self._callbacks: dict = {}          # id -> (done, deadline) of calls not waited for
@@ -120,11 +136,12 @@ class LearnerProcess:
             ring = SampleRing(1 + 3 * self._N, self.RING_ROWS, lock)
         cmd_r, cmd_w = ctx.Pipe(duplex=False)
         out_r, out_w = ctx.Pipe(duplex=False)
+        _grow_pipe(out_w)
         cfg = dataclasses.asdict(self.config)
         ring_info = None if ring is None else (ring.name, ring.width, ring.capacity)
         proc = ctx.Process(target=child_main, name='dgp_learner', daemon=True,
                            args=(cfg, cmd_r, out_w, lock, ring_info, init, self.nice,
-                                 self._variance, self._want_residuals))
+                                 self._variance, self._want_residuals, self.sched))
         proc.start()
         cmd_r.close()
         out_w.close()
@@ -142,7 +159,7 @@ class LearnerProcess:
             proc.join(5.0)
             raise ValueError(info)
         if info.get('snapshot') is not None:
-            self._snap = info['snapshot']
+            self._install(info['snapshot'], 0.0)
         self._status = info.get('status', {})
         old_ring = self._ring
         self._proc, self._cmd, self._out, self._lock_ring = proc, cmd_w, out_r, lock
@@ -161,7 +178,10 @@ class LearnerProcess:
         """Install what the child sends; restart it when it dies (unless closing)."""
         while True:
             try:
-                msg = conn.recv()
+                buf = conn.recv_bytes()
+                t0 = time.perf_counter()
+                msg = ForkingPickler.loads(buf)      # what Connection.recv does, timed
+                received = time.perf_counter() - t0
             except (EOFError, OSError):
                 break
             except Exception as exc:     # noqa: BLE001 - an unreadable message: say so, go on
@@ -169,7 +189,7 @@ class LearnerProcess:
                 continue
             kind = msg[0]
             if kind == 'snapshot':
-                self._snap = msg[1]
+                self._install(msg[1], received)
             elif kind == 'status':
                 self._status = msg[1]
             elif kind == 'residuals':
@@ -205,6 +225,18 @@ class LearnerProcess:
             except Exception as exc:        # noqa: BLE001 - keep answering; retry in a while
                 self.exit_reason = f'learner process could not be restarted: {exc}'
                 time.sleep(1.0)
+
+    def _install(self, snap, received: float) -> None:
+        """Prepare a new snapshot here (the receiver thread), then swap it in by reference."""
+        t0 = time.perf_counter()
+        if self.prepare is not None and snap is not None:
+            try:
+                self.prepare(snap)
+            except Exception as exc:     # noqa: BLE001 - the message path then builds it itself
+                self._error = f'snapshot not prepared: {type(exc).__name__}: {exc}'
+        self._snap = snap
+        if snap is not None:
+            self.swaps.note(snap.version, received, time.perf_counter() - t0)
 
     def _call(self, kind: str, *args, timeout: Optional[float] = None):
         """Send a command and wait for its reply: (ok, payload); (False, why) on a timeout."""
@@ -379,13 +411,14 @@ class LearnerProcess:
         d['samples_dropped'] = self.samples_dropped
         d['learner_restarts'] = self.restarts
         d['learner_alive'] = self._proc is not None and self._proc.is_alive()
+        d.update(self.swaps.summary())
         ring = self._ring
         if ring is not None:
             try:
                 # sent, not yet taken by the learner; never waits on a learner holding the lock
-                pending = ring.pending(timeout=ring.LOCK_TIMEOUT_S)
+                pending = ring.pending(timeout=0)
                 if pending is not None:
-                    d['samples_pending'] = pending
+                    d['samples_pending'] = pending + ring.backlog
             except Exception:       # noqa: BLE001 - a ring being replaced: next time
                 pass
         warnings = list(d.get('warnings', []))
@@ -416,6 +449,19 @@ class LearnerProcess:
             if ring is not None:
                 ring.close()
         self._ring = self._retired = None
+
+
+#: the snapshot pipe's buffer (Linux ``F_SETPIPE_SZ``; 64 KiB by default, 1 MiB at most unless
+#: the administrator allows more): a burst of snapshots waits there, not in the child's write
+PIPE_BYTES = 1 << 20
+
+
+def _grow_pipe(conn) -> None:
+    try:
+        import fcntl
+        fcntl.fcntl(conn.fileno(), getattr(fcntl, 'F_SETPIPE_SZ', 1031), PIPE_BYTES)
+    except (OSError, ImportError, ValueError):
+        pass                                # the OS's default size
 
 
 def _raise(what: str) -> None:

@@ -5,13 +5,16 @@ One producer (the message path) appends rows, one consumer (the learner) takes e
 in one copy. A full ring refuses the row (the producer counts it) instead of blocking: the
 message path never waits for the learner. The two counters live in the same shared block; a
 ``multiprocessing.Lock`` around their updates orders the row writes before the counter (a
-memory barrier on every architecture), held for a few array writes only. The producer waits
-for it at most ``LOCK_TIMEOUT_S`` and refuses the row otherwise: a consumer killed while holding
-it (SIGKILL) cannot stall the message path; the producer then makes a new ring for the next
-consumer.
+memory barrier on every architecture), held for a few array writes only. The producer never
+waits for it: when the consumer holds it (a learner at idle priority can be preempted holding it
+for as long as the node keeps the CPU busy, or be stopped, or killed), the row waits in a small
+local backlog that the next push writes first (``BACKLOG_ROWS``; beyond it rows are refused), so
+a stalled consumer costs the message path nothing and a preempted one loses no row; the producer
+makes a new ring for the next consumer after a kill.
 """
 from __future__ import annotations
 
+from collections import deque
 from multiprocessing import shared_memory
 from typing import Optional
 
@@ -52,27 +55,47 @@ class SampleRing:
         if self._owner:
             self._hdr[:] = 0
         self._lock = lock
+        self._backlog: deque = deque()
 
     @property
     def name(self) -> str:
         return self._shm.name
 
-    #: longest wait of ``push`` for the lock (s)
+    #: rows kept on the producer's side while the lock is taken (about 1 s at 1 kHz)
+    BACKLOG_ROWS = 1024
+    #: longest wait of ``pending`` (the diagnostics) for the lock, by default (s)
     LOCK_TIMEOUT_S = 0.002
 
     def push(self, row) -> bool:
-        """Append one row (width,); False (nothing written) when the ring is full or stuck."""
-        if not self._lock.acquire(timeout=self.LOCK_TIMEOUT_S):
-            return False
+        """
+        Append one row (width,) without waiting; False (nothing kept) when it cannot be kept.
+
+        The ring full, or the lock taken with ``BACKLOG_ROWS`` rows already waiting here.
+        """
+        backlog = self._backlog
+        if not self._lock.acquire(False):
+            if len(backlog) >= self.BACKLOG_ROWS:
+                return False
+            backlog.append(np.array(row, dtype=np.float64))
+            return True
         try:
             w, r = int(self._hdr[0]), int(self._hdr[1])
+            while backlog and w - r < self.capacity:
+                self._data[w % self.capacity] = backlog.popleft()
+                w += 1
             if w - r >= self.capacity:
+                self._hdr[0] = w
                 return False
             self._data[w % self.capacity] = row
             self._hdr[0] = w + 1
         finally:
             self._lock.release()
         return True
+
+    @property
+    def backlog(self) -> int:
+        """Rows pushed and kept on the producer's side (the lock was taken at their push)."""
+        return len(self._backlog)
 
     def pending(self, timeout: float = -1) -> Optional[int]:
         """Rows written and not yet taken; None if the lock is not free within ``timeout`` s."""

@@ -14,7 +14,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ['Snapshot']
+__all__ = ['Snapshot', 'SwapLog']
 
 
 @dataclass(frozen=True)
@@ -47,3 +47,41 @@ class Snapshot:
     variance: bool = True
     velocity_box: Optional[tuple] = None
     residual_bound: Optional[np.ndarray] = None
+
+
+class SwapLog:
+    """
+    What receiving and installing the last snapshots cost the node process (no rclpy).
+
+    ``note(version, receive_s, prepare_s)`` records one swap: ``receive_s`` reading and unpickling
+    it, ``prepare_s`` building what the answers need (``plan.PlanCache.prepare``), both in the
+    receiver thread, off the message path; the install itself is one reference assignment.
+    ``summary()`` is what /diagnostics shows: swaps counted, the longest and the last costs (ms).
+    """
+
+    KEEP = 256
+
+    def __init__(self):
+        from collections import deque
+        self.swaps = 0
+        self._recent = deque(maxlen=self.KEEP)      # (version, receive_s, prepare_s)
+        self.max_receive_s = self.max_prepare_s = 0.0
+
+    def note(self, version: int, receive_s: float, prepare_s: float) -> None:
+        self.swaps += 1
+        self._recent.append((int(version), float(receive_s), float(prepare_s)))
+        self.max_receive_s = max(self.max_receive_s, float(receive_s))
+        self.max_prepare_s = max(self.max_prepare_s, float(prepare_s))
+
+    def recent(self) -> list:
+        """Return the last ``KEEP`` swaps, oldest first: (version, receive_s, prepare_s)."""
+        return list(self._recent)
+
+    def summary(self) -> dict:
+        if not self.swaps:
+            return {'snapshot_swaps': 0}
+        _, r, p = self._recent[-1]
+        return {'snapshot_swaps': self.swaps,
+                'snapshot_receive_max_ms': round(self.max_receive_s * 1e3, 3),
+                'snapshot_prepare_max_ms': round(self.max_prepare_s * 1e3, 3),
+                'snapshot_prepare_last_ms': round(p * 1e3, 3)}

@@ -255,6 +255,37 @@ def test_services(rig, tmp_path, monkeypatch):
     assert est.estimator.diagnostics()['buffer_fill'] == 0 and not est.estimator.trained
 
 
+def test_save_and_reset_run_beside_the_message_path(rig):
+    """A save (or reset) that waits for the learner: messages are answered meanwhile (issue 33)."""
+    import threading
+    est = rig.start_estimator(FAST)
+    if not isinstance(est.executor, WaitSetExecutor):
+        pytest.skip('rclpy executors run the services in line (DGP_EXECUTOR)')
+    gate, entered = threading.Event(), threading.Event()
+
+    def slow_save(path=None):
+        entered.set()
+        assert gate.wait(30)
+        return '/tmp/saved.npz'
+    est.estimator.save = slow_save
+    cli = rig.helper.create_client(Trigger, '/dgp_estimator/save_model')
+    assert rig.spin_until(cli.service_is_ready, 10)
+    fut = cli.call_async(Trigger.Request())
+    assert rig.spin_until(entered.is_set, 10)
+    n = len(rig.got['force'])
+    feed(rig, 5)                                  # answered while the save is running
+    assert len(rig.got['force']) >= n + 5 and not fut.done()
+    gate.set()
+    assert rig.spin_until(fut.done, 10)
+    assert fut.result().success and fut.result().message == 'saved to /tmp/saved.npz'
+    est.estimator.save = lambda path=None: (_ for _ in ()).throw(OSError('disk full'))
+    fut = cli.call_async(Trigger.Request())
+    assert rig.spin_until(fut.done, 10)
+    assert not fut.result().success and 'disk full' in fut.result().message
+    r = rig.call('/dgp_estimator/reset')
+    assert r.success and est.estimator.diagnostics()['buffer_fill'] == 0
+
+
 def test_invalid_parameters_rejected_with_reason(rig):
     est = rig.start_estimator(FAST)
     cases = [('model', 'gpytorch', 'model'), ('passivity', 'maybe', 'passivity'),
