@@ -25,26 +25,28 @@ __all__ = ['run_dds']
 
 
 def _commands(robot: str, compensation: str, duration_s: float, seed: int, out: str,
-              timeout_s: float) -> dict:
+              timeout_s: float, refit_mode: str, wait_s: float) -> dict:
     sim = ['-p', 'use_sim_time:=true']
     est = console('estimator', 'dgp_ros.nodes.estimator') + [
         '--ros-args', '-r', 'generalized_state:=/joint_states', *sim,
         '-p', 'inverse_dynamics:=urdf', '-p', f'urdf_file:={example_robot_urdf(robot)}',
-        '-p', f'joints:={json.dumps(list(ARM_JOINTS[robot]))}']
+        '-p', f'joints:={json.dumps(list(ARM_JOINTS[robot]))}', '-p', f'refit_mode:={refit_mode}']
     arm = console('dgp-arm-loop', 'dgp_ros.nodes.arm_loop') + [
         '--ros-args', '-p', f'robot:={robot}', '-p', f'duration_s:={float(duration_s)}',
         '-p', f'seed:={int(seed)}', '-p', f'min_subscribers:={3 if compensation != "none" else 2}',
-        '-p', 'step_timeout_s:=0.5']
+        '-p', f'step_timeout_s:={float(wait_s) + 5.0}']
     ctl = console('dgp-controller', 'dgp_ros.nodes.controller') + [
         '--ros-args', *sim, '-p', f'robot:={robot}', '-p', f'compensation:={compensation}',
         '-p', f'seed:={int(seed)}', '-p', f'timeout_s:={float(timeout_s)}',
+        '-p', f'wait_for_answer_s:={float(wait_s)}',
         '-p', f'summary_path:={os.path.join(out, "controller.json")}']
     return {'estimator': est, 'arm_loop': arm, 'controller': ctl}
 
 
 def run_dds(robot: str, compensation: str, duration_s: float, out: str, env: dict,
             seed: int = 0, timeout_s: float = 0.05, kill_at_s: Optional[float] = None,
-            wall_limit_s: float = 300.0) -> dict:
+            wall_limit_s: float = 300.0, refit_mode: str = 'process',
+            wait_for_answer_s: float = 0.05) -> dict:
     """
     Run the three nodes until the arm's ``duration_s`` is done; return what was measured.
 
@@ -52,6 +54,9 @@ def run_dds(robot: str, compensation: str, duration_s: float, out: str, env: dic
     ``controller`` (its counts, ``nodes.controller``), ``exit`` (each child's exit status;
     the controller and the arm must exit 0), ``killed_at_s`` (the arm's time at the SIGKILL),
     ``wall_s``. ``env``: ``children.isolated_env()`` (called before this process's context).
+    ``refit_mode``: the estimator's (``process``, its default: the learner beside the message
+    path, asynchronous; ``sync``: in line, the run then equals ``loop_run``'s step for step when
+    the controller waits for every answer, ``wait_for_answer_s`` longer than a refit).
     """
     from rclpy.qos import QoSProfile
     from sensor_msgs.msg import JointState
@@ -61,7 +66,8 @@ def run_dds(robot: str, compensation: str, duration_s: float, out: str, env: dic
     rows = []
     t0 = time.monotonic()
     killed = None
-    cmds = _commands(robot, compensation, duration_s, seed, out, timeout_s)
+    cmds = _commands(robot, compensation, duration_s, seed, out, timeout_s, refit_mode,
+                     wait_for_answer_s)
     with listener('dgp_loop_listener') as (node, ex), Children(env, out) as kids:
         node.create_subscription(
             JointState, '/joint_states',
@@ -85,6 +91,8 @@ def run_dds(robot: str, compensation: str, duration_s: float, out: str, env: dic
         for _ in range(20):
             ex.spin_once(timeout_sec=0.01)
         codes = kids.close()
+    if codes.get('arm_loop') != 0:
+        raise RuntimeError(f'dgp-arm-loop exited with {codes.get("arm_loop")}; see arm_loop.log')
     with open(os.path.join(out, 'controller.json')) as f:
         counts = json.load(f)
     t = np.array([r[0] for r in rows])

@@ -47,7 +47,7 @@ SPECS = [
     ParamSpec('joints', 'str[]', [], "joint order of the commands ([] = the robot's "
               'ARM_JOINTS order)'),
     ParamSpec('step_timeout_s', 'float', 0.5, 'wall time to wait for a command before the '
-              'last one is applied again (counted)', low=0.001, high=60.0),
+              'last one is applied again (counted)', low=0.001, high=600.0),
     ParamSpec('min_subscribers', 'int', 1, 'joint_states subscriptions to wait for before '
               'the first step', low=0, high=100),
     ParamSpec('wait_for_subscribers_s', 'float', 60.0, 'longest wait for the subscribers and '

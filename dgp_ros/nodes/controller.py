@@ -15,9 +15,10 @@ newest answer on ``<estimator>/damping_force`` (``compensation`` dgp or dgp_damp
 messages' (simulated) time; those steps are counted (``stale``).
 
 **Lock-step.** With a compensation, the command for ``t`` waits for the answer stamped ``t`` (the
-estimator answers each state at once) at most ``wait_for_answer_s`` of wall time, and does not
-wait at all while the held answer is stale (the estimator is gone): the arm (``dgp-arm-loop``)
-then sees no compensation within ``timeout_s`` of simulated time. At exit (SIGINT/SIGTERM) the
+estimator answers each state at once) at most ``wait_for_answer_s`` of wall time; after a wait
+that ran out it does not wait again until an answer arrives (the estimator is gone or late): the
+arm (``dgp-arm-loop``) then gets its commands at once, and no compensation once the held answer
+is older than ``timeout_s`` of simulated time. At exit (SIGINT/SIGTERM) the
 counts are logged and, with ``summary_path``, written as JSON.
 """
 import json
@@ -46,7 +47,7 @@ SPECS = [
     ParamSpec('timeout_s', 'float', 0.05, 'answers older than this (s of message time) are not '
               'used', low=0.001, high=10.0),
     ParamSpec('wait_for_answer_s', 'float', 0.05, 'wall time the command for t waits for the '
-              'answer stamped t while answers are fresh', low=0.0, high=10.0),
+              'answer stamped t while answers are fresh', low=0.0, high=600.0),
     ParamSpec('estimator', 'str', '/dgp_estimator', "namespace of the estimator's topics"),
     ParamSpec('seed', 'int', 0, 'reference path', low=0, high=2 ** 31 - 1),
     ParamSpec('cycle_s', 'float', 10.0, 'period of the reference path (s)', low=1.0,
@@ -96,6 +97,7 @@ class ControllerNode(Node):
             self.create_subscription(JointState, ns + '/rigid_body_correction',
                                      self._on_correction, QoSProfile(depth=100))
         self._pending = None             # (t, q, qd, since) of a state waiting for its answer
+        self._expect = True              # answers are coming: wait for them
         self.create_timer(0.001, self._on_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'{p["robot"]}: compensation {self.comp} (k={p["k"]:g}), PD '
                                f'{p["bandwidth_hz"]:g} Hz, timeout {p["timeout_s"]:g} s')
@@ -121,6 +123,7 @@ class ControllerNode(Node):
         if v.shape == f.shape and float(v @ f) < 0.0:
             self.counts['nonpassive_answers'] += 1
         self.held_d.update(_stamp(msg), msg.name, msg.effort)
+        self._expect = True
         self._try()
 
     def _on_correction(self, msg: JointState) -> None:
@@ -130,16 +133,16 @@ class ControllerNode(Node):
         """Command the pending state if its answer is in, no compensation waits, or it is stale."""
         if self._pending is None:
             return
-        t = self._pending[0]
         held = self.held_d.stamp
-        if self.comp == 'none' or (held is not None and held >= t) or held is None or \
-                t - held > self.params['timeout_s']:
+        if self.comp == 'none' or not self._expect or (held is not None and
+                                                       held >= self._pending[0]):
             self._command(*self._pending[:3])
 
     def _on_timer(self) -> None:
         if self._pending is not None and \
                 time.monotonic() - self._pending[3] > self.params['wait_for_answer_s']:
             self.counts['waited_out'] += 1
+            self._expect = False
             self._command(*self._pending[:3])
 
     def _command(self, t, q, qd) -> None:
