@@ -161,7 +161,10 @@ class ClosedLoopArm:
         self.qd = self.qd + dqd
         self.q = self.q + self.dt * self.qd
         self.steps += 1
-        self.t = self.steps * self.dt
+        # the stamp a message carries, read back as the message path reads it (messages.py):
+        # the same float in process and over DDS
+        sec, nsec = divmod(int(round(self.steps * self.dt * 1e9)), 1_000_000_000)
+        self.t = sec + 1e-9 * nsec
         self.tau = tau.copy()
         self.last_friction = f
 

@@ -97,7 +97,7 @@ class ArmLoopNode(Node):
     def _publish_state(self) -> None:
         t, q, qd, effort = self.arm.measure()
         c = ClockMsg()
-        c.clock.sec, c.clock.nanosec = divmod(self.arm.steps * 1_000_000, 1_000_000_000)
+        c.clock.sec, c.clock.nanosec = divmod(int(round(t * 1e9)), 1_000_000_000)
         self.pub_clock.publish(c)
         m = JointState()
         m.header.stamp = c.clock

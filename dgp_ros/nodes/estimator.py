@@ -329,6 +329,8 @@ class EstimatorNode(Node):
         names = self._names_of(est, msg)
         hdr = msg.header
         out = self._out
+        if self._want_corr:         # before the force: a controller acting on the force has both
+            self._publish_correction(msg, hdr, names)
         self.pub_force.publish(out['force'].fill(hdr, names, est.qd, est.tau_hat))
         if np.all(np.isfinite(est.stddev)):         # NaN: nobody subscribed (not computed)
             self.pub_std.publish(out['std'].fill(hdr, names, est.qd, est.stddev))
@@ -338,8 +340,6 @@ class EstimatorNode(Node):
         if self._want_power:
             self._power.data = float(est.power)
             self.pub_power.publish(self._power)
-        if self._want_corr:
-            self._publish_correction(msg, hdr, names)
         for r in est.residuals:
             h = type(hdr)()
             h.frame_id = hdr.frame_id

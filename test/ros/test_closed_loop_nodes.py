@@ -1,6 +1,5 @@
 """
-The closed-loop nodes (#32): dgp-arm-loop and dgp-controller in lock-step, and over DDS with the
-estimator SIGKILLed in the middle of the run.
+The closed-loop nodes (#32): lock-step, and the estimator SIGKILLed in the middle of a run.
 
 * in one process (one context): the arm and the controller without compensation step for step
   equal the in-process run (``apps.loop_run``): lock-step makes the DDS path deterministic;
