@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from dgp_ros.apps.loop_demo import sweep, summarize
+from dgp_ros.apps.loop_demo import summarize, sweep
 from dgp_ros.apps.loop_run import run_loop, score, TIMEOUT_S
 from dgp_ros.dynamics import ARM_JOINTS
 
@@ -81,11 +81,9 @@ def main() -> None:
         s['stability'] = stable
         s['wall_s'] = time.monotonic() - t0
         res[robot] = s
-        print(json.dumps({robot: {k: s[k] for k in ('tracking_rms_mean', 'ratio_dgp_none',
-                                                   'ratio_dgp_sigmoid',
-                                                   'worst_joint_ratio_dgp_none', 'kill',
-                                                   'stability', 'wall_s')}}, indent=1),
-              flush=True)
+        keys = ('tracking_rms_mean', 'ratio_dgp_none', 'ratio_dgp_sigmoid',
+                'worst_joint_ratio_dgp_none', 'kill', 'stability', 'wall_s')
+        print(json.dumps({robot: {k: s[k] for k in keys}}, indent=1), flush=True)
     with open(os.path.join(a.out, 'closed_loop.json'), 'w') as f:
         json.dump(res, f, indent=2)
     for robot, s in res.items():

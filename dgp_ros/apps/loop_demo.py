@@ -85,6 +85,9 @@ def summarize(runs: dict, learn: float, names) -> dict:
            'tracking_rms': {c: v.tolist() for c, v in rms.items()},
            'tracking_max': {c: v.tolist() for c, v in mx.items()},
            'tracking_rms_mean': mean,
+           # while learning (the estimator's first models), and its first 2 s alone
+           'tracking_rms_learning': {c: score(r, 0.0, learn)[0].tolist() for c, r in runs.items()},
+           'tracking_rms_first_2s': {c: score(r, 0.0, 2.0)[0].tolist() for c, r in runs.items()},
            'injected_energy_j': {c: float(r['injected_j']) for c, r in runs.items()},
            'answers': {c: int(r['answers']) for c, r in runs.items()},
            'nonpassive_answers': {c: int(r['nonpassive_answers']) for c, r in runs.items()},
