@@ -191,6 +191,7 @@ class HeldEstimate:
     ignored); a message that lacks one of the controller's joints or has a non-finite value is
     refused and counted (``refused``). ``value(now_s)`` returns the held values (N,) in the
     controller's order, or zeros when there is none or it is stale (``stale`` counts those calls).
+
     """
 
     def __init__(self, names: Sequence[str], timeout_s: float):
