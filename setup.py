@@ -35,6 +35,8 @@ setup(
             'estimator = dgp_ros.nodes.estimator:main',
             'sim_bridge = sim_bridge.node:main',
             'dgp-arm-sim = dgp_ros.nodes.arm_sim:main',
+            'dgp-arm-loop = dgp_ros.nodes.arm_loop:main',
+            'dgp-controller = dgp_ros.nodes.controller:main',
             'dgp-demo = dgp_ros.apps.demo:main',
             'dgp-replay = dgp_ros.apps.replay:main',
             'dgp-record = dgp_ros.bags.cli:record_main',

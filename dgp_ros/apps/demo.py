@@ -290,6 +290,9 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    if '--closed-loop' in argv:
+        from dgp_ros.apps import loop_demo
+        return loop_demo.main(argv)
     if any(x == '--robot' or x.startswith('--robot=') for x in argv):
         from dgp_ros.apps import robot_demo
         return robot_demo.main(argv)

@@ -214,6 +214,19 @@ class Correction:
             raise ValueError('this model corrects the rigid-body model in the pose: pass q=')
         return np.einsum('knc,c->kn', self.basis.deploy(Q), self.theta) + self.offsets
 
+    def conservative(self, Q) -> np.ndarray:
+        """
+        Return the conservative part ``dV/dq`` alone at poses Q (k, N): (k, N) N m.
+
+        What a controller adds to its rigid-body model (the payload's gravity): the offsets are
+        left out (on a torque-sensing arm they are the sensor's bias, no torque the motors must
+        make). Zeros without a basis.
+        """
+        Q = np.atleast_2d(np.asarray(Q, float))
+        if not self.needs_position:
+            return np.zeros((Q.shape[0], self.offsets.size))
+        return np.einsum('knc,c->kn', self.basis.deploy(Q), self.theta)
+
     def to_dict(self) -> dict:
         return {'kind': self.kind, 'basis': None if self.basis is None else self.basis.to_dict(),
                 'theta': self.theta.tolist(), 'offsets': self.offsets.tolist()}

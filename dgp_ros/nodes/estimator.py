@@ -17,7 +17,10 @@ publishes, for every accepted measurement, stamped like it:
 - ``~/dissipated_power`` (Float64, qd^T tau_hat);
 - ``~/friction_residual`` (JointState, with inverse_dynamics): what is learned, each sample
   stamped with its own (earlier) time: position, velocity, effort = effort - tau_rb;
-- ``~/bias`` (JointState, with bias=true once trained): the learned per-joint bias.
+- ``~/bias`` (JointState, with bias=true once trained): the learned per-joint bias;
+- ``~/rigid_body_correction`` (JointState: position = q, effort = dV/dq(q)): the learned
+  conservative correction of the rigid-body model (the payload's gravity the URDF lacks), at the
+  message's pose, only while subscribed and when the model has one (docs/CONTRACTS.md).
 
 ``/diagnostics`` every ``diagnostics_period_s``; services ``~/refit``, ``~/reset``,
 ``~/save_model`` (std_srvs/Trigger). SIGINT/SIGTERM: the model is saved (``model_path``) and the
@@ -103,6 +106,7 @@ class EstimatorNode(Node):
         self.pub_power = self.create_publisher(Float64, '~/dissipated_power', out)
         self.pub_residual = self.create_publisher(JointState, '~/friction_residual', out)
         self.pub_bias = self.create_publisher(JointState, '~/bias', 10)
+        self.pub_corr = self.create_publisher(JointState, '~/rigid_body_correction', out)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_service(Trigger, '~/refit', self._srv_refit)
         self.create_service(Trigger, '~/reset', self._srv_reset)
@@ -124,6 +128,7 @@ class EstimatorNode(Node):
         self._out = {k: Reused() for k in ('force', 'std', 'D')}
         self._power = Float64()
         self._want_power = True
+        self._want_corr = False
         self._names_out: tuple = ((), [])     # (estimate's names, the list the messages carry)
         # CPU of the message path: this thread's CPU in the message callbacks, against its
         # whole CPU and the process's since the first message (/diagnostics)
@@ -163,6 +168,7 @@ class EstimatorNode(Node):
             residuals=self.pub_residual.get_subscription_count() > 0)
         # a publish without subscribers still serializes the message (7 to 13 us)
         self._want_power = self.pub_power.get_subscription_count() > 0
+        self._want_corr = self.pub_corr.get_subscription_count() > 0
 
     def _on_robot_description(self, msg: String) -> None:
         """Build the rigid-body model from a URDF on /robot_description (again on a new one)."""
@@ -279,6 +285,8 @@ class EstimatorNode(Node):
         names = self._names_of(est, msg)
         hdr = msg.header
         out = self._out
+        if self._want_corr:         # before the force: a controller acting on the force has both
+            self._publish_correction(msg, hdr, names)
         self.pub_force.publish(out['force'].fill(hdr, names, est.qd, est.tau_hat))
         if np.all(np.isfinite(est.stddev)):         # NaN: nobody subscribed (not computed)
             self.pub_std.publish(out['std'].fill(hdr, names, est.qd, est.stddev))
@@ -297,6 +305,16 @@ class EstimatorNode(Node):
         age = (now.nanoseconds - (hdr.stamp.sec * 10 ** 9 + hdr.stamp.nanosec)) * 1e-9
         if abs(age) < AGE_PLAUSIBLE_S:       # stamps on this clock (not a bag's own time base)
             self._age.append(age)
+
+    def _publish_correction(self, msg: JointState, hdr, names) -> None:
+        """``~/rigid_body_correction`` at the message's pose, if the model has a correction."""
+        pos = dict(zip(msg.name, msg.position))
+        if not all(n in pos for n in names):
+            return
+        q = np.array([pos[n] for n in names])
+        corr = self.estimator.rigid_body_correction(q)
+        if corr is not None:
+            self.pub_corr.publish(_joint_state(hdr, names, q, (), corr))
 
     def cpu_per_message(self) -> dict:
         """

@@ -144,6 +144,19 @@ class OnlineEstimator:
         s = self._learner.snapshot(self._want_stddev)
         return None if s is None else s.model
 
+    def rigid_body_correction(self, q) -> Optional[np.ndarray]:
+        """
+        Return the current model's conservative correction of the rigid-body model at q (N,).
+
+        ``dV/dq(q)`` [N m] (the payload's gravity the URDF lacks), without the offsets (see
+        ``dynamics.conservative.Correction.conservative``), in the estimator's joint order; None
+        when the model has none (no fit yet, no inverse dynamics, a fixed prior).
+        """
+        corr = getattr(self.model, 'correction_', None)
+        if corr is None or not getattr(corr, 'needs_position', False):
+            return None
+        return corr.conservative(np.asarray(q, dtype=float))[0]
+
     @property
     def names(self) -> Optional[List[str]]:
         return None if self._names is None else list(self._names)
