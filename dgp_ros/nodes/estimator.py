@@ -314,7 +314,7 @@ class EstimatorNode(Node):
         q = np.array([pos[n] for n in names])
         corr = self.estimator.rigid_body_correction(q)
         if corr is not None:
-            self.pub_corr.publish(_joint_state(hdr, names, q, (), corr))
+            self.pub_corr.publish(joint_state(hdr, names, q, (), corr))
 
     def cpu_per_message(self) -> dict:
         """
