@@ -294,7 +294,7 @@ def lower_priority(sched: str, nice: int) -> str:
 
 
 def child_main(cfg: dict, cmd, out, lock, ring_info, init, nice: int, variance: bool,
-               residuals: bool, sched: str = 'idle') -> None:
+               residuals: bool, sched: str = 'nice') -> None:
     """Run a Learner on the ring's samples: the child process (module docstring)."""
     # Ctrl-C and a SIGTERM to the process group are the node's to handle: it saves through
     # this process, then stops it. The child ends when the node's pipe closes (the node died).

@@ -70,7 +70,7 @@ class LearnerProcess:
         Niceness increment of the child (``os.nice``) where it runs at nice.
     sched : str or None
         'idle' (``SCHED_IDLE`` where the OS allows it, else nice) or 'nice'; None: the
-        environment's ``DGP_LEARNER_SCHED``, else 'idle'. ``status()['learner_sched']`` says
+        environment's ``DGP_LEARNER_SCHED``, else 'nice'. ``status()['learner_sched']`` says
         what the child got.
     prepare : callable or None
         ``prepare(snapshot)``, called in the receiver thread before a new snapshot is installed:
@@ -91,7 +91,7 @@ class LearnerProcess:
                  prepare=None):
         self.config = config
         self.nice = int(nice)
-        sched = sched or os.environ.get('DGP_LEARNER_SCHED', '') or 'idle'
+        sched = sched or os.environ.get('DGP_LEARNER_SCHED', '') or 'nice'
         if sched not in SCHED_CHOICES:
             raise ValueError(f'DGP_LEARNER_SCHED={sched!r}: one of ' + ', '.join(SCHED_CHOICES))
         self.sched = sched
@@ -192,6 +192,9 @@ class LearnerProcess:
                 self._install(msg[1], received)
             elif kind == 'status':
                 self._status = msg[1]
+                ring = self._ring
+                if ring is not None and ring.backlog:
+                    ring.flush()           # rows kept while the learner held the lock
             elif kind == 'residuals':
                 self._residuals.extend(msg[1])
             elif kind == 'reply':

@@ -92,6 +92,26 @@ class SampleRing:
             self._lock.release()
         return True
 
+    def flush(self) -> None:
+        """
+        Write the backlog into the ring if the lock is free now (never waits).
+
+        A backlog is otherwise written by the next ``push``: when the stream pauses, the node
+        calls this (``LearnerProcess``'s receiver, at each status of the learner) so that the
+        last rows before a pause reach the learner too.
+        """
+        backlog = self._backlog
+        if not backlog or not self._lock.acquire(False):
+            return
+        try:
+            w, r = int(self._hdr[0]), int(self._hdr[1])
+            while backlog and w - r < self.capacity:
+                self._data[w % self.capacity] = backlog.popleft()
+                w += 1
+            self._hdr[0] = w
+        finally:
+            self._lock.release()
+
     @property
     def backlog(self) -> int:
         """Rows pushed and kept on the producer's side (the lock was taken at their push)."""
