@@ -28,8 +28,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from dgp_ros.dynamics.closed_loop import ClosedLoopArm, reference_path
-from dgp_ros.nodes.runtime import check_unknown_overrides, declare_parameters, help_text, run
-from dgp_ros.params import check_spec, ParamSpec
+from dgp_ros.nodes.runtime import checked_parameters, help_text, run
+from dgp_ros.params import ParamSpec
 
 SPECS = [
     ParamSpec('robot', 'str', 'panda', 'simulated arm (example-robot-data URDF)',
@@ -61,12 +61,7 @@ class ArmLoopNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('arm_loop', **kwargs)
-        declare_parameters(self, SPECS)
-        check_unknown_overrides(self)
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
-        for name, spec in PARAMETERS.items():
-            check_spec(spec, p[name])
-        self.params = p
+        p = self.params = checked_parameters(self, SPECS)
         ref = reference_path(p['robot'], seed=p['seed'], cycle_s=p['cycle_s'])
         q0, qd0, _ = ref(0.0)
         self.arm = ClosedLoopArm(p['robot'], q0, qd0, seed=p['seed'],

@@ -22,8 +22,8 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
 
 from dgp_ros.dynamics.arm_stream import demo_arm, DriverStream
-from dgp_ros.nodes.runtime import check_unknown_overrides, declare_parameters, help_text, run
-from dgp_ros.params import check_spec, ParamSpec
+from dgp_ros.nodes.runtime import checked_parameters, help_text, run
+from dgp_ros.params import ParamSpec
 
 SPECS = [
     ParamSpec('robot', 'str', 'panda', 'simulated arm (example-robot-data URDF)',
@@ -62,12 +62,7 @@ class ArmSimNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('arm_sim', **kwargs)
-        declare_parameters(self, SPECS)
-        check_unknown_overrides(self)
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
-        for name, spec in PARAMETERS.items():
-            check_spec(spec, p[name])
-        self.params = p
+        p = self.params = checked_parameters(self, SPECS)
         self.pub = self.create_publisher(JointState, 'joint_states', QoSProfile(depth=100))
         t0 = time.perf_counter()
         sim = demo_arm(p['robot'], p['duration_s'], seed=p['seed'], friction=p['friction'],

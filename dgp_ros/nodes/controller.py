@@ -33,8 +33,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from dgp_ros.dynamics.closed_loop import HeldEstimate, reference_path, TrackingController
-from dgp_ros.nodes.runtime import check_unknown_overrides, declare_parameters, help_text, run
-from dgp_ros.params import check_spec, ParamSpec
+from dgp_ros.nodes.runtime import checked_parameters, help_text, run
+from dgp_ros.params import ParamSpec
 
 SPECS = [
     ParamSpec('robot', 'str', 'panda', 'the arm: its URDF (feed-forward, mass matrix) and joints',
@@ -67,12 +67,7 @@ class ControllerNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('controller', **kwargs)
-        declare_parameters(self, SPECS)
-        check_unknown_overrides(self)
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
-        for name, spec in PARAMETERS.items():
-            check_spec(spec, p[name])
-        self.params = p
+        p = self.params = checked_parameters(self, SPECS)
         self.law = TrackingController(p['robot'], p['bandwidth_hz'], p['damping_ratio'], p['k'])
         self.ref = reference_path(p['robot'], seed=p['seed'], cycle_s=p['cycle_s'])
         self.names = list(self.law.names)

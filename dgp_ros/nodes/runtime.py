@@ -32,6 +32,7 @@ from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
 from dgp_ros.nodes.executor import set_batch_handler, WaitSetExecutor
+from dgp_ros.params import check_spec
 
 __all__ = ['declare_parameters', 'unknown_overrides', 'reject_unknown', 'help_text', 'run',
            'WaitSetExecutor', 'set_batch_handler', 'EXECUTORS']
@@ -63,6 +64,22 @@ def declare_parameters(node, specs: Iterable) -> None:
                 node.set_parameters([Parameter(spec.name, _ARRAY[spec.type], [])])
         else:
             node.declare_parameter(spec.name, spec.default, desc)
+
+
+def checked_parameters(node, specs) -> dict:
+    """
+    Declare ``specs`` on ``node`` and return their values by name, each checked.
+
+    ``specs``: ``params.ParamSpec``; unknown overrides are refused and a value outside its spec
+    raises ValueError saying which and why.
+    """
+    specs = list(specs)
+    declare_parameters(node, specs)
+    check_unknown_overrides(node)
+    values = {spec.name: node.get_parameter(spec.name).value for spec in specs}
+    for spec in specs:
+        check_spec(spec, values[spec.name])
+    return values
 
 
 def _hint(name: str, known) -> str:
