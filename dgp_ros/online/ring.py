@@ -79,12 +79,8 @@ class SampleRing:
             backlog.append(np.array(row, dtype=np.float64))
             return True
         try:
-            w, r = int(self._hdr[0]), int(self._hdr[1])
-            while backlog and w - r < self.capacity:
-                self._data[w % self.capacity] = backlog.popleft()
-                w += 1
+            w, r = self._write_backlog(), int(self._hdr[1])
             if w - r >= self.capacity:
-                self._hdr[0] = w
                 return False
             self._data[w % self.capacity] = row
             self._hdr[0] = w + 1
@@ -104,13 +100,18 @@ class SampleRing:
         if not backlog or not self._lock.acquire(False):
             return
         try:
-            w, r = int(self._hdr[0]), int(self._hdr[1])
-            while backlog and w - r < self.capacity:
-                self._data[w % self.capacity] = backlog.popleft()
-                w += 1
-            self._hdr[0] = w
+            self._write_backlog()
         finally:
             self._lock.release()
+
+    def _write_backlog(self) -> int:
+        """With the lock held: write the backlog rows that fit, oldest first; the write index."""
+        backlog, w, r = self._backlog, int(self._hdr[0]), int(self._hdr[1])
+        while backlog and w - r < self.capacity:
+            self._data[w % self.capacity] = backlog.popleft()
+            w += 1
+        self._hdr[0] = w
+        return w
 
     @property
     def backlog(self) -> int:
