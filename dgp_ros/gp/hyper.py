@@ -84,19 +84,53 @@ def apply_fixed_noise(hp: Hyper, noise) -> None:
     hp.log_sn2 = np.log((nz / hp.sy) ** 2)
 
 
+#: signal-variance floor (standardized units) of an element whose feature never came near zero
+#: in the data; scaled by the square of its ``PERSISTENT_QUANTILE`` quantile (``_sf2_floor``)
+PERSISTENT_SF2 = 1e-2
+PERSISTENT_QUANTILE = 0.05
+
+
+def _sf2_floor(structure: Structure, X: np.ndarray, e: int) -> float:
+    """
+    Least signal variance of element ``e`` (standardized units): how far it may be switched off.
+
+    An element ``(m, n)`` contributes ``x_n f_mn(x)``: where ``x_n`` never comes near zero in the
+    data (the airspeed of an aircraft, ``|x_n|`` at its 5 % quantile close to its RMS), it can
+    carry a force the other elements of row ``m`` cannot carry where *their* features vanish,
+    and data that never visited that place cannot tell the two apart. Switched off (``sf2 ->
+    1e-8``; a warm start never brings it back, the gradient vanishes with ``sf2``), the model
+    answers such a place by one element's feature times a weight that must explode: on an A320
+    approach whose first seconds stayed at positive angles of attack, lift and drag carried by
+    the alpha elements alone were off by up to a standard deviation, sample by sample, the first
+    time alpha crossed zero. So such an element keeps ``PERSISTENT_SF2 q^2`` (``q`` = the
+    quantile of ``|x_n|`` over its RMS): none for a joint velocity that reverses (an arm's), the
+    full floor for one that never goes near zero. ARD elements (``phi = 1``) keep ``1e-8``.
+    """
+    n = structure.elems[e][1]
+    if n is None or not X.shape[0]:
+        return 1e-8
+    a = np.abs(X[:, n])
+    rms = float(np.sqrt(np.mean(a * a)))
+    if rms <= 0.0:
+        return 1e-8
+    q = float(np.quantile(a, PERSISTENT_QUANTILE)) / rms
+    return max(1e-8, PERSISTENT_SF2 * q * q)
+
+
 def _bounds(structure: Structure, X: np.ndarray, m: int, noise_floor: float = MIN_NOISE_VAR):
     """
     L-BFGS-B bounds of output m's parameter vector (see ``LmlObjective``).
 
     Standardized units: residual RMS 1 and |x| ~ 1, so sf2 ~ 1 and lengthscales of order the
     data spread; the absolute floor 1e-2 (1 % of the RMS velocity) keeps a fit on a short stretch
-    of data from learning lengthscales nothing later can be compared with. The noise variance is
-    at least ``noise_floor`` (standardized units).
+    of data from learning lengthscales nothing later can be compared with. The signal variance of
+    an element whose feature stays away from zero has a floor (``_sf2_floor``). The noise variance
+    is at least ``noise_floor`` (standardized units).
     """
     spread = np.std(X, axis=0)
     spread = np.where(spread > 1e-6, spread, 1.0)
     rows = structure.rows[m]
-    b = [(math.log(1e-8), math.log(1e2)) for _ in rows]
+    b = [(math.log(_sf2_floor(structure, X, e)), math.log(1e2)) for e in rows]
     for _ in rows:
         for d in range(X.shape[1]):
             lo = max(0.02 * spread[d], 1e-2)
