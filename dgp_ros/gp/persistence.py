@@ -95,6 +95,9 @@ def save_model(model, path) -> None:
     correction = getattr(model, 'correction_', None)
     if correction is not None:      # what the residual holds besides damping (online learner)
         header['correction'] = _jsonable(correction.to_dict())
+    grounds = getattr(model, 'grounds_', None)
+    if grounds is not None:         # the online learner's earned gains (a record, kept as is)
+        header['grounds'] = _jsonable(grounds)
     header['sha256'] = _digest(arrays, header)
     arrays['header'] = np.array(json.dumps(header))
     path = os.fspath(path)
@@ -172,7 +175,7 @@ class ModelFile:
     kind : 'full' | 'diag' | 'ard'; params : constructor arguments (``hyperparams`` None);
     posterior : the restored ``Posterior``; policy : the policy's saved state (json dict);
     policy_arrays : its arrays; certificate : the saved record (never trusted: the policy
-    re-derives it).
+    re-derives it); correction, grounds : records the online learner saved with the model.
     """
 
     kind: str
@@ -182,6 +185,7 @@ class ModelFile:
     policy_arrays: dict
     certificate: dict
     correction: Optional[dict] = None
+    grounds: Optional[dict] = None      # the online learner's gains (``dgp_ros.online.grounds``)
 
 
 def read_model(path) -> ModelFile:
@@ -277,8 +281,10 @@ def _load(path: str) -> ModelFile:
     pol_arrays = {k[4:]: v for k, v in arrays.items() if k.startswith('pol_')}
     if params.get('prior') == 'frozen':
         params['prior'] = mean
+    grounds = header.get('grounds')
     return ModelFile(kind, params, post, header.get('policy', {}), pol_arrays,
-                     header.get('certificate', {}), header.get('correction'))
+                     header.get('certificate', {}), header.get('correction'),
+                     grounds if isinstance(grounds, dict) else None)
 
 
 def _upgrade_v1(header: dict, arrays: dict, kind: str, N: int):

@@ -18,6 +18,7 @@ import numpy as np
 
 from dgp_ros.gp import passive_tolerance
 
+from .grounds import blend
 from .plan import PlanCache
 from .snapshot import Snapshot
 
@@ -41,7 +42,10 @@ class Estimate:
     was offered for learning (with inverse dynamics its residual is learned once the filter's
     window is complete); processing_time_s : wall time spent; residuals : friction residual
     samples (``dynamics.ResidualSample``) the learner completed since the last answer (each
-    trails its message by the filter's half window), which is what the model learns.
+    trails its message by the filter's half window), which is what the model learns;
+    confidence : (N,) how much of tau_hat a controller may use, in [0, 1] (``grounds``: its
+    one-step-ahead gain; 0 before the model has earned any, and where the answer is the
+    fallback alone).
     """
 
     stamp_s: float
@@ -57,6 +61,7 @@ class Estimate:
     added: bool
     processing_time_s: float
     residuals: list = dataclasses.field(default_factory=list)
+    confidence: Optional[np.ndarray] = None
 
 
 def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damping: bool,
@@ -66,42 +71,66 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
     Answer velocities Q (k, N) from ``snap`` through the gate (module docstring).
 
     Returns (tau_hat (k, N), std (k, N), D (k, N, N) or None, source (k,) of 'model' |
-    'prior' | 'fallback'); ``std`` is NaN where not wanted, ``D`` None where not wanted.
+    'prior' | 'fallback', confidence (k, N)); ``std`` is NaN where not wanted, ``D`` None where
+    not wanted. A model's answers are blended toward the fallback by the snapshot's gains
+    (``grounds.blend``); ``confidence`` is the snapshot's confidence of the blended answer (0
+    where the answer is the fallback alone).
     ``health`` counts what the gate did; ``note_error`` records a failed prediction. With
     ``plans``, answers without the variance come from the snapshot's ``plan.AnswerPlan`` (the
     same mean in one lean pass).
     """
     k, N = Q.shape
     source = np.array(['prior'] * k, dtype=object)
+    conf = np.zeros((k, N))
     tau = std = D = None
     if snap is not None and snap.model is not None:
+        w = snap.model_weight
+        mix = w is not None and snap.prior is not None and not bool(np.all(w >= 1.0))
+        per_joint = mix and snap.per_joint
         try:
             plan = None if want_stddev or plans is None else plans.get(snap.model)
             if plan is not None:
-                (tau, D), var = plan.answers(Q, want_damping), None
+                (tau, D), var = plan.answers(Q, want_damping or per_joint), None
             else:
-                tau, var, D = snap.model.predict_with_damping(Q, want_stddev, want_damping)
+                tau, var, D = snap.model.predict_with_damping(Q, want_stddev,
+                                                              want_damping or per_joint)
             std = (np.sqrt(np.maximum(var, 0.0)) if var is not None
                    else np.full((k, N), np.nan))
             source[:] = 'model'
+            conf[:] = 1.0 if snap.confidence is None else snap.confidence
+            if mix:
+                dg = np.asarray(snap.prior.diag(Q), float)
+                tau, D = blend(Q, tau, D, dg, w, snap.prior_gain, per_joint)
+                if not want_damping:
+                    D = None
         except Exception as exc:        # noqa: BLE001 - the answer falls back to the prior
             health.nonfinite_outputs += k
             note_error(f'predict failed: {type(exc).__name__}: {exc}')
             source[:] = 'fallback'
+            conf[:] = 0.0
             tau = None
     if tau is None:
         tau, std, D = _prior(snap, Q, want_damping)
-    return _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, health)
+    tau, std, D, source = _gate(snap, Q, tau, std, D, source, want_stddev, want_damping,
+                                passivity, health)
+    conf[source != 'model'] = 0.0
+    return tau, std, D, source, conf
 
 
 def _prior(snap: Optional[Snapshot], Q: np.ndarray, want_damping: bool):
-    """(tau, std, D) of the passive prior ``diag(m_d(qd)) qd`` (zero before any snapshot)."""
+    """
+    (tau, std, D) of the fallback ``a diag(m_d(qd)) qd``: the passive prior times its gain.
+
+    Zero before any snapshot, and where the prior has earned no gain yet (``grounds``).
+    """
     k, N = Q.shape
     if snap is None or snap.prior is None:
         d = np.zeros((k, N))
         std = np.zeros((k, N))
     else:
         d = np.asarray(snap.prior.diag(Q), float)
+        if snap.prior_gain is not None:
+            d = d * snap.prior_gain
         std = np.broadcast_to(snap.prior_std, (k, N)).copy()
     tau = d * Q
     bad = ~np.all(np.isfinite(tau), axis=1)

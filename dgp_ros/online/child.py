@@ -64,6 +64,10 @@ class LearnerLoop:
                 self.learner.adopt(init.model, 'the last snapshot')
             if init is not None and init.residual_bound is not None:
                 self.learner.restore_residual_bound(init.residual_bound)
+            if init is not None:
+                self.learner.restore_gains(getattr(init, 'model_weight', None),
+                                           getattr(init, 'prior_gain', None),
+                                           getattr(init, 'confidence', None))
         except Exception as exc:        # noqa: BLE001 - the node reports it and exits 2
             self.learner = None
             self.out.send(('error', f'{exc}'))

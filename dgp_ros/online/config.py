@@ -47,7 +47,9 @@ PARAMS = {p.name: p for p in (
     ParamSpec('refit_period_s', 'float', 10.0, 'message-stamp seconds between refits; 0 = first '
               'fit and on request only', low=0.0, high=86400.0),
     ParamSpec('optimize_every_n_refits', 'int', 5, 'hyper-parameters re-learned every n-th '
-              'refit (0 = first fit only)', low=0, high=1000),
+              'refit, and when a sample the model answered badly lies beyond the velocities '
+              'they were learned on (0 = first fit only; so with refit_period_s 0)',
+              low=0, high=1000),
     ParamSpec('buffer_policy', 'str', 'coverage', 'which sample a full buffer replaces: '
               'coverage (one of the two closest in velocity: the buffer keeps the motion that was '
               'visited) or recency (the oldest)', choices=('coverage', 'recency')),

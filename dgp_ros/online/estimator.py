@@ -211,7 +211,7 @@ class OnlineEstimator:
 
     def _answer(self, keep: list, pred: tuple, out: list, t0: float) -> None:
         """Turn the predictions ``pred`` of the accepted messages ``keep`` into ``out``."""
-        tau_hat, std, D, source = pred
+        tau_hat, std, D, source, conf = pred
         residuals = self._learner.take_residuals() if keep else []
         h = self.health
         dt = time.perf_counter() - t0
@@ -221,7 +221,7 @@ class OnlineEstimator:
                 power = 0.0                 # rounding only (the gate replaced the others)
             est = Estimate(stamp, list(names) if names else [], qd, tau, tau_hat[j], std[j],
                            None if D is None else D[j], power, float(qd @ tau), source[j],
-                           added, dt, res)
+                           added, dt, res, conf[j])
             out[i] = est
             h.latencies.append(dt)
             self._last_est = est
@@ -344,7 +344,7 @@ class OnlineEstimator:
 
     # ------------------------------------------------------------------ estimates
     def _estimate(self, snap: Optional[Snapshot], Q: np.ndarray):
-        """(tau_hat, std, D, source) for velocities Q (k, N) from ``snap``, through the gate."""
+        """(tau_hat, std, D, source, confidence) at velocities Q (k, N) from ``snap`` (gate)."""
         return answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
                       self.health, self._learner.note_error, self._plans)
 

@@ -100,6 +100,7 @@ class LearnerHealth:
     refits_ok: int = 0
     refits_failed: int = 0
     refits_rejected: int = 0          # candidates the sanity check refused
+    novelty_refits: int = 0           # optimizing refits asked for by data in new territory
     recertifications: int = 0
     appends: int = 0                  # samples appended to the served model as they came
     absorbs: int = 0                  # rebases: refits on the buffer at fixed hyper-parameters
@@ -152,6 +153,7 @@ class LearnerHealth:
             'samples_outliers': self.samples_outliers,
             'refits_started': self.refits_started, 'refits_ok': self.refits_ok,
             'refits_failed': self.refits_failed, 'refits_rejected': self.refits_rejected,
+            'novelty_refits': self.novelty_refits,
             'consecutive_refit_failures': self.consecutive_refit_failures,
             'last_refit_error': self.last_refit_error,
             'last_refit_stamp': self.last_refit_stamp,
@@ -328,6 +330,7 @@ class LearnerReport:
                 'warnings': self._warnings(),
             }
             d.update(self.health.counters())
+            d.update(self.skill_summary())
             return d
 
     def _warnings(self) -> List[str]:

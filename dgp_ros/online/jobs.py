@@ -37,7 +37,43 @@ class JobRunner:
     #: (without any model: always, each retry waiting twice as many samples, up to 64 x)
     MAX_RETRIES = 3
 
+    #: a learned sample beyond the velocities the hyper-parameters were learned on, by this
+    #: fraction of their range on any joint, asks for an optimizing refit (``_note_novelty``) ...
+    NOVELTY_MARGIN = 0.1
+    #: ... where the model's error on it is beyond this many times its recent RMS error ...
+    NOVELTY_SURPRISE = 2.5
+    #: ... at most once per this much learning time (s)
+    NOVELTY_GAP_S = 1.0
+
     # ------------------------------------------------------------------ decisions
+    def _note_novelty(self, stamp: float, qd: np.ndarray, surprise: float) -> None:
+        """
+        Ask for an optimizing refit when the data leave what the hyper-parameters were fitted on.
+
+        A refit by the clock answers a system that enters new territory (an aircraft at its
+        first negative angle of attack and 20 % more airspeed) for up to ``refit_period_s`` x
+        ``optimize_every_n_refits`` with hyper-parameters learned where it was before; the
+        samples appended meanwhile are taken at those. So a learned sample beyond the box of the
+        last optimization's velocities (grown by ``NOVELTY_MARGIN`` of its range) that the model
+        answered badly (``surprise``: its one-step error over its recent RMS error, beyond
+        ``NOVELTY_SURPRISE``; ``grounds``) makes the next refit one that re-learns them, at most
+        every ``NOVELTY_GAP_S`` of learning time (``novelty_refits`` on /diagnostics). A model
+        that extrapolates well into new territory is left alone: an arm's first cycle leaves
+        the box all the time.
+        """
+        box = self._hyper_box
+        cfg = self.config
+        if box is None or self._model is None or not surprise > self.NOVELTY_SURPRISE or \
+                cfg.optimize_every_n_refits == 0 or cfg.refit_period_s == 0:    # by request
+            return
+        lo, hi = box
+        grow = self.NOVELTY_MARGIN * np.maximum(hi - lo, 1e-12)
+        if np.any(qd < lo - grow) or np.any(qd > hi + grow):
+            last = self._novel_t
+            if last is None or stamp < last or stamp - last >= self.NOVELTY_GAP_S:
+                self._novel, self._novel_t = True, stamp
+                self.health.novelty_refits += 1
+
     def _hypers_outgrown(self) -> bool:
         """Tell whether the buffer has at least doubled since the hyper-parameters were learned."""
         return 0 < self._opt_n and self._buf.size >= 2 * self._opt_n
@@ -64,7 +100,8 @@ class JobRunner:
                    stamp - self._clock >= cfg.refit_period_s)                 # periodic
                or (self._model is not None and self._hypers_outgrown() and
                    self.health.consecutive_refit_failures == 0)               # buffer doubled
-               or (self._retry_at is not None and self._seq >= self._retry_at))  # rejected
+               or (self._retry_at is not None and self._seq >= self._retry_at)   # rejected
+               or (self._novel and self._model is not None))                  # new territory
         if due:
             self._refit_requested = False
             self._retry_at = None
@@ -92,10 +129,13 @@ class JobRunner:
         k = h.refits_started
         optimize = (self._model is None or self._hyper is None or
                     (cfg.optimize_every_n_refits > 0 and k % cfg.optimize_every_n_refits == 0)
-                    or self._hypers_outgrown())
+                    or self._hypers_outgrown() or self._novel)
+        self._novel = False
         if self.auto:
             self._reselect()            # prior='auto': structure and correction on the history
         Q, T = self._buf.arrays()
+        if optimize and Q.shape[0]:
+            self._hyper_box = (Q.min(axis=0), Q.max(axis=0))
         # re-learning on data like the last optimum's refines it (no restarts); after the buffer
         # doubled the data changed enough to search again from scratch
         warm = self._hyper is not None and not self._hypers_outgrown()

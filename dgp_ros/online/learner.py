@@ -35,6 +35,7 @@ from dgp_ros.gp.means import make_mean
 
 from .absorb import Absorber
 from .config import check_model_path, EstimatorConfig
+from .grounds import GAINS, SkillMixin
 from .health import LearnerHealth, LearnerReport, POWER_WINDOW
 from .jobs import JobRunner
 from .selection import Buffer, Selector
@@ -52,7 +53,7 @@ STRUCTURAL = ('model', 'passivity', 'prior', 'bias', 'buffer_size', 'buffer_poli
 FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints')
 
 
-class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
+class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
     """
     Online learning of a D-GP from a stream of measurements (module docstring).
 
@@ -102,6 +103,7 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
         self._param = None
         self._rmax = None                  # largest |residual| learned per joint (structure.py)
         self._selector = Selector()
+        self._skill = None                # one-step skill of model and prior (grounds.py)
         self._seq = 0                     # samples ever added (orders the catch-up)
         self._reset_absorber(self.config.buffer_size)
         # (seq, qd, tau, answer before learning) added while a refit runs; only the newest
@@ -110,6 +112,8 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
         self._model = None
         self._hyper: Optional[dict] = None   # warm start of the next fit (hyperparams_)
         self._opt_n = 0                   # samples the current hyper-parameters were learned on
+        self._hyper_box = None            # their velocity box (jobs.JobRunner._note_novelty)
+        self._novel, self._novel_t = False, None
         self._prior = None                # fitted prior of the buffer (lazy): (mean, std, seq)
         self._last_t: Optional[float] = None
         self._last_added_t: Optional[float] = None
@@ -266,8 +270,10 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
         if self._selector.outlier(self.config, self._buf, qd, residual):
             h.samples_outliers += 1
             return False
+        prior = self._skill_prior()             # the prior before this sample (one step ahead)
         yt = self._history_push(stamp, q, qd, qdd, residual)
         target = self._target(residual, yt)
+        self._note_novelty(stamp, qd, self._note_skill(stamp, qd, target, prior, residual, q))
         if not self._selector.novel(self.config, self._buf, qd):
             h.samples_skipped += 1
             return False
@@ -333,14 +339,18 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
                 Q, T = self._buf.rows_unordered()
                 bound = np.abs(T).max(axis=0) if self._buf.size else np.zeros(self._N)
             box = (Q.min(axis=0), Q.max(axis=0)) if len(Q) else None
+            per_joint = model is not None and model.posterior_.structure.has_damping and \
+                model.certificate().guarantee == 'psd'
             if model is not None and frozen:
                 model = model.snapshot(variance=variance)
+            weight, gain, conf = self.skill_gains()
             self._snap = Snapshot(version=self._version, model=model, prior=mean,
                                   prior_std=std, force_bound=bound, velocity_box=box,
                                   residual_bound=None if self._rmax is None else
                                   self._rmax.copy(),
                                   learned_through=self._last_t, frozen=frozen,
-                                  variance=variance or not frozen)
+                                  variance=variance or not frozen, model_weight=weight,
+                                  prior_gain=gain, confidence=conf, per_joint=per_joint)
             return self._snap
 
     # ------------------------------------------------------------------ housekeeping
@@ -406,6 +416,9 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
             self._absorb()          # the saved prior and correction see the whole history
             with self._lock:
                 model = copy.deepcopy(self._model)
+        gains = self.skill_gains()
+        if gains[0] is not None:    # restored with the model (``_load``)
+            model.grounds_ = {k: [float(x) for x in v] for k, v in zip(GAINS, gains)}
         path = os.path.abspath(path)
         model.save(path)
         return path
@@ -441,13 +454,21 @@ class Learner(StructureMixin, Absorber, JobRunner, LearnerReport):
             self._based(model, self._seq, self._target_gen)
             self._hyper = model.hyperparams_
             self._opt_n = X.shape[0]
+            self._hyper_box = (X.min(axis=0), X.max(axis=0))
             self._clock = None              # set by the first message
 
     def _load(self, path: str) -> None:
         try:
-            self.adopt(self._loader(path), 'file')
+            model = self._loader(path)
+            self.adopt(model, 'file')
         except Exception as exc:
             self.load_error = f'could not use {path}: {exc}'
+            return
+        # a model file answers with the gains it was saved with (a file without them, at full
+        # weight: the user gave it); one-step scores then move them as a learned model's
+        N = model.X_train_.shape[1]
+        g = getattr(model, 'grounds_', None) or {}
+        self.restore_gains(*(g.get(k, np.ones(N)) for k in GAINS))
 
 
 def _inverse_dynamics(config: EstimatorConfig):

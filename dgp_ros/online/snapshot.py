@@ -33,6 +33,10 @@ class Snapshot:
     residual_bound : (N,) largest |residual| learned per joint, before any correction (None
         after a reload): how far the prior may raise that bound at most.
     learned_through : learning time of the newest sample the learner had seen (s), or None.
+    model_weight, prior_gain, confidence : (N,) the model's weight in the blend, the prior's
+        gain and the confidence of the blended answer, earned one step ahead (``grounds``), None
+        before any sample.
+    per_joint : the model's guarantee is ``psd``: the blend may weigh joints apart.
     frozen : a self-contained copy (another process); variance : the posterior variance is
         available.
     """
@@ -47,6 +51,10 @@ class Snapshot:
     variance: bool = True
     velocity_box: Optional[tuple] = None
     residual_bound: Optional[np.ndarray] = None
+    model_weight: Optional[np.ndarray] = None
+    prior_gain: Optional[np.ndarray] = None
+    confidence: Optional[np.ndarray] = None
+    per_joint: bool = False
 
 
 class SwapLog:

@@ -98,6 +98,9 @@ def test_certified_with_a_pending_proof_answers_as_projected():
     ta = np.array([e.tau_hat for e in ea])
     tb = np.array([e.tau_hat for e in eb])
     same = np.all(np.isclose(ta, tb, rtol=1e-9, atol=1e-9), axis=1)
+    # (after the first 20 answers: while the model earns its weight, a proven psd model blends
+    # joint by joint where a projected one blends all joints alike, online.grounds)
+    same = same[20:]
     assert same.mean() > 0.95, same.mean()
     tau = np.array([e.tau for e in ea])
     ratio = ((ta - tau) ** 2).mean(axis=0) / ((tb - tau) ** 2).mean(axis=0)

@@ -183,11 +183,18 @@ def test_prior_mean_before_min_samples():
         q = traj(i * 0.2)
         tau = true_tau(q) + rng.normal(0, 0.02, 3)
         Q.append(q), T.append(tau)
+        gain = est.learner.skill_gains()[1]
         e = est.process(i * 0.2, NAMES, q, tau)
         assert e.source == 'prior'
-        # answered before it is learned: the prior of the samples before it (none: zero),
-        # each joint clipped by the gate to 1.5 x the largest force learned on it
+        # answered before it is learned: the prior of the samples before it (none: zero) times
+        # the gain it earned one step ahead (online.grounds), each joint clipped by the gate
+        # to 1.5 x the largest force learned on it
         m_d = prior_mean_diag(np.array(Q[:-1]), np.array(T[:-1])) if i else np.zeros(3)
+        if gain is not None:
+            assert np.all((0.0 <= gain) & (gain <= 1.0))
+            m_d = m_d * gain
+        if i >= 4:
+            assert np.all(gain > 0.9), gain        # a prior that fits earns its weight at once
         limit = 1.5 * np.abs(np.array(T[:-1])).max(axis=0) if i else np.zeros(3)
         inside = np.abs(m_d * q) <= limit
         np.testing.assert_allclose(e.tau_hat[inside], (m_d * q)[inside])
@@ -307,6 +314,8 @@ def test_output_gate_falls_back_to_prior_when_model_is_not_passive_or_not_finite
                           model_factory=lambda kind, **kw: _Evil(**kw))
     feed(est, 12)
     assert est.trained
+    # the gate itself: a model with full weight (the blend would have scored this one to 0)
+    est.learner.restore_gains(np.ones(3), np.ones(3), np.ones(3))
     n = est.diagnostics()['passivity_fallbacks']
     e = est.process(5.0, NAMES, [0.5, 0.5, 2.0], [1.0, 0.5, 1.0])
     assert e.source == 'fallback' and e.power >= 0

@@ -165,7 +165,7 @@ def test_answers_outside_the_learned_velocities_stay_within_what_was_learned():
                     velocity_box=box)
     far = np.array([[5.0, 0.1], [-5.0, 0.1], [0.2, 0.1]])
     health = SimpleNamespace(nonfinite_outputs=0, passivity_fallbacks=0, answers_bounded=0)
-    tau, _, _, src = answer(snap, far, False, False, 'projected', health, lambda m: None)
+    tau, _, _, src, _ = answer(snap, far, False, False, 'projected', health, lambda m: None)
     edge = np.abs(prior.diag(np.clip(far, *box)) * np.clip(far, *box))
     limit = BOUND_FACTOR * np.maximum(np.abs(T).max(axis=0), edge)
     assert np.all(np.abs(tau) <= limit * (1 + 1e-12)), (tau, limit)
