@@ -6,13 +6,15 @@ The example controller of the closed-loop demo (thin wrapper of
 one ``std_msgs/Float64MultiArray`` on ``/effort_controller/commands`` (joint order ``joints``)::
 
     tau = tau_rb_urdf(q_r, qd_r, qdd_r) + M_urdf(q) (w^2 (q_r - q) + 2 zeta w (qd_r - qd))
-          + k * (tau_hat + correction)
+          + k * c * (tau_hat + correction)
 
 with the reference path ``(q_r, qd_r, qdd_r)(t)`` of ``seed`` and ``cycle_s``, ``tau_hat`` the
-newest answer on ``<estimator>/damping_force`` (``compensation`` dgp or dgp_damping_only) and
-``correction`` the newest on ``<estimator>/rigid_body_correction`` (dgp only). Each is held
-(zero-order hold), matched by joint name and dropped when older than ``timeout_s`` of the
-messages' (simulated) time; those steps are counted (``stale``).
+newest answer on ``<estimator>/damping_force`` (``compensation`` dgp or dgp_damping_only),
+``correction`` the newest on ``<estimator>/rigid_body_correction`` (dgp only) and ``c`` the
+per-joint confidence on ``<estimator>/damping_force_confidence`` (``use_confidence``: the
+compensation fades in as the model earns it and out where it has no grounds; 0 until one
+arrives). Each is held (zero-order hold), matched by joint name and dropped when older than
+``timeout_s`` of the messages' (simulated) time; those steps are counted (``stale``).
 
 **Lock-step.** With a compensation, the command for ``t`` waits for the answer stamped ``t`` (the
 estimator answers each state at once) at most ``wait_for_answer_s`` of wall time; after a wait
@@ -42,6 +44,8 @@ SPECS = [
     ParamSpec('compensation', 'str', 'dgp', 'feed-forward: none, dgp (damping force + '
               'correction) or dgp_damping_only', choices=('none', 'dgp', 'dgp_damping_only')),
     ParamSpec('k', 'float', 1.0, 'gain of the compensation feed-forward', low=0.0, high=2.0),
+    ParamSpec('use_confidence', 'bool', True, "scale k by the estimator's per-joint confidence "
+              '(~/damping_force_confidence)'),
     ParamSpec('bandwidth_hz', 'float', 4.0, 'PD bandwidth w / 2 pi (Hz)', low=0.1, high=50.0),
     ParamSpec('damping_ratio', 'float', 1.0, 'PD damping ratio', low=0.1, high=5.0),
     ParamSpec('timeout_s', 'float', 0.05, 'answers older than this (s of message time) are not '
@@ -78,6 +82,7 @@ class ControllerNode(Node):
         self.comp = p['compensation']
         self.held_d = HeldEstimate(self.names, p['timeout_s'])
         self.held_c = HeldEstimate(self.names, p['timeout_s'])
+        self.held_k = HeldEstimate(self.names, p['timeout_s'])
         self.counts = {'states': 0, 'commands': 0, 'waited_out': 0, 'answers': 0,
                        'nonpassive_answers': 0, 'refused_states': 0}
         self.pub = self.create_publisher(Float64MultiArray, '/effort_controller/commands',
@@ -91,6 +96,9 @@ class ControllerNode(Node):
         if self.comp == 'dgp':
             self.create_subscription(JointState, ns + '/rigid_body_correction',
                                      self._on_correction, QoSProfile(depth=100))
+        if self.comp != 'none' and p['use_confidence']:
+            self.create_subscription(JointState, ns + '/damping_force_confidence',
+                                     self._on_confidence, QoSProfile(depth=100))
         self._pending = None             # (t, q, qd, since) of a state waiting for its answer
         self._expect = True              # answers are coming: wait for them
         self.create_timer(0.001, self._on_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -124,6 +132,9 @@ class ControllerNode(Node):
     def _on_correction(self, msg: JointState) -> None:
         self.held_c.update(_stamp(msg), msg.name, msg.effort)
 
+    def _on_confidence(self, msg: JointState) -> None:
+        self.held_k.update(_stamp(msg), msg.name, msg.effort)
+
     def _try(self) -> None:
         """Command the pending state if its answer is in, no compensation waits, or it is stale."""
         if self._pending is None:
@@ -145,6 +156,8 @@ class ControllerNode(Node):
         comp = None
         if self.comp != 'none':
             comp = self.held_d.value(t) + (self.held_c.value(t) if self.comp == 'dgp' else 0.0)
+            if self.params['use_confidence']:
+                comp = self.held_k.value(t) * comp
         tau = self.law.command(q, qd, self.ref(t), comp)
         m = Float64MultiArray()
         m.data = [float(tau[i]) for i in self.out_index]

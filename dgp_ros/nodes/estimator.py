@@ -14,6 +14,9 @@ publishes, for every accepted measurement, stamped like it:
 - ``~/damping_matrix_stamped`` (JointState: the measurement's stamp and joint names, velocity =
   qd, effort = D(qd) row-major, N * N entries) and ``~/damping_matrix`` (Float64MultiArray, the
   same N x N row-major, for consumers of the unstamped array); not for model=ard;
+- ``~/damping_force_confidence`` (JointState: velocity = qd, effort = the per-joint confidence
+  in [0, 1] of the force and the correction, earned one step ahead: a controller's gain on them;
+  only while subscribed, published just before the force);
 - ``~/dissipated_power`` (Float64, qd^T tau_hat);
 - ``~/friction_residual`` (JointState, with inverse_dynamics): what is learned, each sample
   stamped with its own (earlier) time: position, velocity, effort = effort - tau_rb;
@@ -101,6 +104,7 @@ class EstimatorNode(Node):
         out = self.ANSWER_HISTORY
         self.pub_force = self.create_publisher(JointState, '~/damping_force', out)
         self.pub_std = self.create_publisher(JointState, '~/damping_force_stddev', out)
+        self.pub_conf = self.create_publisher(JointState, '~/damping_force_confidence', out)
         self.pub_D = self.create_publisher(Float64MultiArray, '~/damping_matrix', out)
         self.pub_D_stamped = self.create_publisher(JointState, '~/damping_matrix_stamped', out)
         self.pub_power = self.create_publisher(Float64, '~/dissipated_power', out)
@@ -125,10 +129,11 @@ class EstimatorNode(Node):
         self._service_lock = threading.Lock()    # ~/save_model and ~/reset, one at a time
         self._last_msg_time = None
         self._age = deque(maxlen=1000)        # stamp -> answer, node clock (s)
-        self._out = {k: Reused() for k in ('force', 'std', 'D')}
+        self._out = {k: Reused() for k in ('force', 'std', 'D', 'conf')}
         self._power = Float64()
         self._want_power = True
         self._want_corr = False
+        self._want_conf = False
         self._names_out: tuple = ((), [])     # (estimate's names, the list the messages carry)
         # CPU of the message path: this thread's CPU in the message callbacks, against its
         # whole CPU and the process's since the first message (/diagnostics)
@@ -169,6 +174,7 @@ class EstimatorNode(Node):
         # a publish without subscribers still serializes the message (7 to 13 us)
         self._want_power = self.pub_power.get_subscription_count() > 0
         self._want_corr = self.pub_corr.get_subscription_count() > 0
+        self._want_conf = self.pub_conf.get_subscription_count() > 0
 
     def _on_robot_description(self, msg: String) -> None:
         """Build the rigid-body model from a URDF on /robot_description (again on a new one)."""
@@ -287,6 +293,8 @@ class EstimatorNode(Node):
         out = self._out
         if self._want_corr:         # before the force: a controller acting on the force has both
             self._publish_correction(msg, hdr, names)
+        if self._want_conf and est.confidence is not None:
+            self.pub_conf.publish(out['conf'].fill(hdr, names, est.qd, est.confidence))
         self.pub_force.publish(out['force'].fill(hdr, names, est.qd, est.tau_hat))
         if np.all(np.isfinite(est.stddev)):         # NaN: nobody subscribed (not computed)
             self.pub_std.publish(out['std'].fill(hdr, names, est.qd, est.stddev))
