@@ -18,8 +18,13 @@ Two modes, both lock-step through simulated time (docs/BENCHMARKS.md, "Closed lo
    show the nodes do what the sweep does (reported next to the sweep's dgp over the same window).
 
 Writes ``summary.json`` (``tracking_rms`` / ``tracking_max`` per compensation per joint [rad] over
-the held-out part, their means and ratios, the energy each compensation injected [J], answers and
-non-passive answers, stale steps, wall time) and ``tracking_error.png`` to ``--out``.
+the held-out part, their means and ratios; ``tracking_rms_windows`` per compensation, a list over
+consecutive 1 s windows from t = 0 of per-joint RMS [rad], and ``tracking_max_first_2s`` per
+joint, with the no-harm checks of the learning transient in ``transient``; the energy each
+compensation injected [J], answers and non-passive answers, stale steps, wall time) and
+``tracking_error.png`` (the tracking error and, beside it, the confidence the controller applied)
+to ``--out``. The run ``dgp_restart`` kills the estimator at ``--restart-at`` and restarts it
+without its model.
 """
 from __future__ import annotations
 
@@ -33,10 +38,13 @@ import time
 
 import numpy as np
 
-from dgp_ros.apps.loop_run import COMPENSATIONS, run_loop, score
+from dgp_ros.apps.loop_run import COMPENSATIONS, RESTART_GAP_S, run_loop, score, windows
 
-#: longest first: two workers finish together
-ORDER = ('dgp', 'dgp_damping_only', 'sigmoid', 'none')
+#: longest first: two workers finish together; ``dgp_restart`` is ``dgp`` with the estimator
+#: killed at ``--restart-at`` and restarted without its model
+ORDER = ('dgp', 'dgp_restart', 'dgp_damping_only', 'sigmoid', 'none')
+#: a compensation's 1 s window or first-2 s peak counts as doing no harm up to this x none's
+NO_HARM = 1.05
 
 
 def parse_args(argv=None):
@@ -52,24 +60,36 @@ def parse_args(argv=None):
     ap.add_argument('--dds-duration', type=float, default=2.0,
                     help='simulated seconds of the dgp run over DDS (0: skip)')
     ap.add_argument('--workers', type=int, default=2, help='processes of the sweep')
+    ap.add_argument('--restart-at', type=float, default=None,
+                    help='dgp_restart: the estimator killed and restarted without its model at '
+                         'this time [s] (default: the middle of the run; negative: no such run)')
     a = ap.parse_args(argv)
     if a.out is None:
         a.out = os.path.join('out', f'loop_{a.robot}')
     if not 0.0 < a.learn < a.duration:
         ap.error('--learn must be in (0, --duration)')
+    if a.restart_at is None:
+        a.restart_at = 0.5 * a.duration
     return a
 
 
 def _one(args) -> dict:
-    robot, comp, duration, learn, seed = args
-    r = run_loop(robot, comp, duration, learn, seed=seed)
-    return {k: r[k] for k in ('compensation', 't', 'error', 'comp', 'injected_j', 'answers',
-                              'nonpassive_answers', 'stale', 'clipped', 'wall_s')}
+    robot, comp, duration, learn, seed, restart = args
+    if comp == 'dgp_restart':
+        r = run_loop(robot, 'dgp', duration, learn, seed=seed, restart_at_s=restart)
+        r['compensation'], r['restart_at_s'] = comp, restart
+    else:
+        r = run_loop(robot, comp, duration, learn, seed=seed)
+    return {k: r[k] for k in ('compensation', 't', 'error', 'comp', 'confidence', 'injected_j',
+                              'answers', 'nonpassive_answers', 'stale', 'clipped', 'wall_s',
+                              'restart_at_s') if k in r}
 
 
-def sweep(robot: str, duration: float, learn: float, seed: int, workers: int) -> dict:
+def sweep(robot: str, duration: float, learn: float, seed: int, workers: int,
+          restart_at: float = -1.0) -> dict:
     """Run every compensation (:data:`ORDER`) in ``workers`` processes; {name: run}."""
-    jobs = [(robot, c, duration, learn, seed) for c in ORDER]
+    jobs = [(robot, c, duration, learn, seed, restart_at) for c in ORDER
+            if c != 'dgp_restart' or 0.0 < restart_at < duration]
     if workers <= 1:
         return {j[1]: _one(j) for j in jobs}
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context('spawn')) as ex:
@@ -99,25 +119,80 @@ def summarize(runs: dict, learn: float, names) -> dict:
         out['worst_joint_ratio_dgp_none'] = float(np.max(rms['dgp'] / rms['none']))
     if 'sigmoid' in mean and 'dgp' in mean:
         out['ratio_dgp_sigmoid'] = mean['dgp'] / mean['sigmoid']
+    out['tracking_rms_windows'] = {c: windows(r).tolist() for c, r in runs.items()}
+    out['tracking_max_first_2s'] = {c: score(r, 0.0, 2.0)[1].tolist() for c, r in runs.items()}
+    out['confidence_windows'] = {c: _mean_windows(r['t'], r['confidence']).tolist()
+                                 for c, r in runs.items() if 'confidence' in r}
+    if 'none' in runs:
+        out['transient'] = transient(runs)
+    return out
+
+
+def _mean_windows(t, x, width_s: float = 1.0) -> np.ndarray:
+    """Mean of x (k, N) per joint over consecutive windows of t (k,) from 0: (w, N)."""
+    k = int(np.floor((t[-1] + 1e-9) / width_s))
+    return np.array([x[(t >= i * width_s) & (t < (i + 1) * width_s)].mean(axis=0)
+                     for i in range(k)])
+
+
+def transient(runs: dict) -> dict:
+    """
+    Check the learning transient against the ``none`` run (no harm).
+
+    Per compensation that uses the estimator: the mean-over-joints RMS of every 1 s window from
+    t = 0 over none's (``window_ratios``, each at most ``NO_HARM``); the largest |error| of
+    every joint over the first 2 s over none's (``max_first_2s_ratios``); for ``dgp_restart``,
+    the windows that start after the restart (``after_restart_ratios``).
+    """
+    none = runs['none']
+    wn = windows(none).mean(axis=1)
+    mn = score(none, 0.0, 2.0)[1]
+    out = {}
+    for c, r in runs.items():
+        if not c.startswith('dgp'):
+            continue
+        wr = windows(r).mean(axis=1) / np.maximum(wn, 1e-12)
+        d = {'window_ratios': wr.tolist(), 'worst_window_ratio': float(wr.max()),
+             'max_first_2s_ratios': (score(r, 0.0, 2.0)[1] / np.maximum(mn, 1e-12)).tolist()}
+        d['worst_max_first_2s_ratio'] = float(max(d['max_first_2s_ratios']))
+        if r.get('restart_at_s') is not None:
+            first = int(np.floor(r['restart_at_s']))
+            d['restart_at_s'] = r['restart_at_s']
+            d['after_restart_ratios'] = wr[first:].tolist()
+            d['worst_after_restart_ratio'] = float(wr[first:].max())
+        d['no_harm'] = bool(d['worst_window_ratio'] <= NO_HARM and
+                            d['worst_max_first_2s_ratio'] <= NO_HARM and
+                            d.get('worst_after_restart_ratio', 0.0) <= NO_HARM)
+        out[c] = d
     return out
 
 
 def plot(runs: dict, names, learn: float, path: str) -> str:
+    """Tracking error per joint (left) and the confidence the controller applied (right)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     n = len(names)
-    fig, axes = plt.subplots(n, 1, figsize=(10, 1.6 * n), sharex=True)
-    for j, ax in enumerate(axes):
-        for c in COMPENSATIONS:
+    fig, axes = plt.subplots(n, 2, figsize=(14, 1.6 * n), sharex=True,
+                             gridspec_kw={'width_ratios': [3, 1]})
+    for j in range(n):
+        ax, axc = axes[j]
+        for c in COMPENSATIONS + ('dgp_restart',):
             if c in runs:
                 r = runs[c]
                 ax.plot(r['t'][::10], r['error'][::10, j], lw=0.7, label=c)
-        ax.axvline(learn, color='k', lw=0.8, ls='--')
+                if c.startswith('dgp') and 'confidence' in r:
+                    axc.plot(r['t'][::10], r['confidence'][::10, j], lw=0.8, label=c)
+        for a_ in (ax, axc):
+            a_.axvline(learn, color='k', lw=0.8, ls='--')
+        axc.set_ylim(-0.05, 1.05)
         ax.set_ylabel(f'{names[j]}\n[rad]', fontsize=7)
-    axes[0].legend(ncol=4, fontsize=7, loc='upper right')
-    axes[0].set_title('tracking error q_ref - q per joint (dashed: end of the learning part)')
-    axes[-1].set_xlabel('simulated time [s]')
+    axes[0, 0].legend(ncol=5, fontsize=7, loc='upper right')
+    axes[0, 1].legend(fontsize=6, loc='lower right')
+    axes[0, 0].set_title('tracking error q_ref - q per joint (dashed: end of the learning part)')
+    axes[0, 1].set_title('confidence applied (k x c)', fontsize=9)
+    for a_ in axes[-1]:
+        a_.set_xlabel('simulated time [s]')
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -133,9 +208,11 @@ def main(argv=None) -> int:
     print(f'[loop] {a.robot}: {", ".join(ORDER)} on the same path (seed {a.seed}), '
           f'{a.duration:g} s each, learning {a.learn:g} s, scored after; {a.workers} workers',
           flush=True)
-    runs = sweep(a.robot, a.duration, a.learn, a.seed, a.workers)
+    runs = sweep(a.robot, a.duration, a.learn, a.seed, a.workers, a.restart_at)
     summary = summarize(runs, a.learn, names)
     for c in ORDER:
+        if c not in runs:
+            continue
         print(f'[loop] {c:17s} held-out tracking RMS [mrad] '
               f'{np.round(1e3 * np.array(summary["tracking_rms"][c]), 1).tolist()} mean '
               f'{1e3 * summary["tracking_rms_mean"][c]:.2f}; injected '
@@ -144,6 +221,14 @@ def main(argv=None) -> int:
     print(f'[loop] dgp / none {summary["ratio_dgp_none"]:.3f} (worst joint '
           f'{summary["worst_joint_ratio_dgp_none"]:.3f}), dgp / sigmoid '
           f'{summary["ratio_dgp_sigmoid"]:.3f}', flush=True)
+    for c, d in summary['transient'].items():
+        extra = (f'; after the restart at {d["restart_at_s"]:g} s (+{RESTART_GAP_S:g} s without '
+                 f'answers) worst window {d["worst_after_restart_ratio"]:.3f}'
+                 if 'restart_at_s' in d else '')
+        print(f'[loop] transient {c}: 1 s windows / none {np.round(d["window_ratios"], 2)} '
+              f'(worst {d["worst_window_ratio"]:.3f}), first 2 s peak / none per joint '
+              f'{np.round(d["max_first_2s_ratios"], 2)}{extra}: '
+              f'{"no harm" if d["no_harm"] else "HARM"} (limit {NO_HARM:g})', flush=True)
     if a.dds_duration > 0:
         summary['dds'] = _dds(a, runs['dgp'])
     files = [plot(runs, names, a.learn, os.path.join(a.out, 'tracking_error.png'))]

@@ -7,8 +7,10 @@ The faithful in-process mode of ``dgp-demo --robot R --closed-loop`` and of
 1. the arm's measurement at ``t`` (``ClosedLoopArm.measure``: q, noisy qd, measured torque);
 2. with ``dgp``: the estimator (``OnlineEstimator``, the node's defaults except
    ``refit_mode='sync'``: the learner in line, so that the run is reproducible) answers it, and
-   the answer ``tau_hat`` (and, where the model has one, its conservative correction at q) goes to
-   the controller's zero-order holds (``HeldEstimate``) stamped ``t``;
+   the answer ``tau_hat`` (and, where the model has one, its conservative correction at q), each
+   times the answer's confidence (the controller's gain ``k`` scaled by it, as
+   ``nodes.controller`` does with ``~/damping_force_confidence``), goes to the controller's
+   zero-order holds (``HeldEstimate``) stamped ``t``;
 3. the controller's command for ``t`` (``TrackingController``: PD + the URDF's feed-forward +
    ``k *`` the held compensation, dropped when older than ``timeout_s``);
 4. the arm integrates the command over one step.
@@ -20,7 +22,9 @@ wait). Compensations (:data:`COMPENSATIONS`): ``none``; ``sigmoid``: none while 
 Makkar sigmoid per joint fitted by least squares on the learning period's residual stream (the
 estimator's own front end: URDF RNEA, the same acceleration filter) at the measured velocity;
 ``dgp``: the live estimator's damping force plus its correction; ``dgp_damping_only``: its damping
-force alone. ``kill_at_s``: from then on the estimator answers nothing (as after a SIGKILL).
+force alone. ``kill_at_s``: from then on the estimator answers nothing (as after a SIGKILL);
+``restart_at_s``: the estimator is killed then and a new one, without the model, answers from
+``restart_at_s + RESTART_GAP_S`` on (a node restarted without ``model_path``).
 """
 from __future__ import annotations
 
@@ -34,11 +38,14 @@ from dgp_ros.dynamics.baselines import _makkar, fit_cv, fit_sigmoid, residual_st
 from dgp_ros.dynamics.closed_loop import (ClosedLoopArm, DT, HeldEstimate, reference_path,
                                           TrackingController)
 
-__all__ = ['COMPENSATIONS', 'estimator_config', 'SigmoidCompensation', 'run_loop', 'score']
+__all__ = ['COMPENSATIONS', 'estimator_config', 'SigmoidCompensation', 'run_loop', 'score',
+           'windows']
 
 COMPENSATIONS = ('none', 'sigmoid', 'dgp', 'dgp_damping_only')
 #: answers older than this [s of simulated time] are not used by the controller
 TIMEOUT_S = 0.05
+#: simulated time without answers between a kill and the restarted estimator's first answer [s]
+RESTART_GAP_S = 0.5
 
 
 def estimator_config(robot: str, **overrides):
@@ -82,7 +89,8 @@ class SigmoidCompensation:
 def run_loop(robot: str = 'panda', compensation: str = 'dgp', duration_s: float = 30.0,
              learn_s: float = 20.0, seed: int = 0, k: float = 1.0, timeout_s: float = TIMEOUT_S,
              kill_at_s: Optional[float] = None, estimator=None, cycle_s: float = 10.0,
-             progress: Optional[Callable[[float], None]] = None) -> dict:
+             progress: Optional[Callable[[float], None]] = None,
+             restart_at_s: Optional[float] = None, use_confidence: bool = True) -> dict:
     """
     Run the arm in closed loop for ``duration_s`` with one compensation (module docstring).
 
@@ -103,6 +111,11 @@ def run_loop(robot: str = 'panda', compensation: str = 'dgp', duration_s: float 
         Staleness limit of the controller's held answers [s].
     kill_at_s : float, optional
         From this time on the estimator answers nothing.
+    restart_at_s : float, optional
+        The estimator is killed at this time; a new one without the model answers from
+        ``restart_at_s + RESTART_GAP_S`` on.
+    use_confidence : bool
+        Scale the compensation by the answers' confidence (the example controller does).
     estimator : OnlineEstimator, optional
         The estimator (default: :func:`estimator_config`'s); closed at the end either way.
     cycle_s : float
@@ -114,7 +127,8 @@ def run_loop(robot: str = 'panda', compensation: str = 'dgp', duration_s: float 
     -------
     dict
         ``t`` (k,) [s]; ``error`` (k, N) ``q_ref - q`` [rad]; ``comp`` (k, N) the compensation
-        added [N m]; ``injected_j`` energy it injected [J]; ``answers``, ``nonpassive_answers``
+        added [N m]; ``confidence`` (k, N) the held answer's confidence (zeros without one);
+        ``injected_j`` energy it injected [J]; ``answers``, ``nonpassive_answers``
         (answers with ``qd . tau_hat < 0``), ``stale`` (steps whose held answer was too old),
         ``clipped`` (commands at an effort limit); ``names``; ``wall_s``; ``estimator``
         (its diagnostics, or None).
@@ -133,7 +147,9 @@ def run_loop(robot: str = 'panda', compensation: str = 'dgp', duration_s: float 
     est = estimator if estimator is not None or not live else _estimator(robot)
     sigmoid = SigmoidCompensation(robot) if compensation == 'sigmoid' else None
     learn_steps = int(round(learn_s / DT))
-    rec = {key: np.zeros((steps, len(names))) for key in ('q', 'qd', 'effort', 'error', 'comp')}
+    rec = {key: np.zeros((steps, len(names)))
+           for key in ('q', 'qd', 'effort', 'error', 'comp', 'confidence')}
+    held_k = HeldEstimate(names, timeout_s)
     t_arr = np.zeros(steps)
     answers = nonpassive = 0
     t0 = time.perf_counter()
@@ -143,16 +159,26 @@ def run_loop(robot: str = 'panda', compensation: str = 'dgp', duration_s: float 
             t_arr[n], rec['q'][n], rec['qd'][n], rec['effort'][n] = t, q, qd, effort
             comp = None
             if live:
-                if kill_at_s is None or t < kill_at_s:
+                if restart_at_s is not None and est is not None and t >= restart_at_s:
+                    est.close(timeout=5.0)
+                    est = None
+                if est is None and restart_at_s is not None and \
+                        t >= restart_at_s + RESTART_GAP_S:
+                    est, restart_at_s = _estimator(robot), None
+                if est is not None and (kill_at_s is None or t < kill_at_s):
                     e = est.process(t, names, qd, effort, q)
                     if e is not None:
                         answers += 1
                         nonpassive += int(float(e.qd @ e.tau_hat) < 0.0)
                         held_d.update(t, e.names, e.tau_hat)
+                        conf = e.confidence if use_confidence and e.confidence is not None \
+                            else np.ones(len(e.names))
+                        held_k.update(t, e.names, conf)
                         c = est.rigid_body_correction(q) if compensation == 'dgp' else None
                         if c is not None:
                             held_c.update(t, e.names, c)
-                comp = held_d.value(t) + held_c.value(t)
+                rec['confidence'][n] = held_k.value(t)
+                comp = rec['confidence'][n] * (held_d.value(t) + held_c.value(t))
             elif sigmoid is not None and n >= learn_steps:
                 if sigmoid.fits is None:
                     sigmoid.fit(t_arr[:n], rec['q'][:n], rec['qd'][:n], rec['effort'][:n])
@@ -168,7 +194,8 @@ def run_loop(robot: str = 'panda', compensation: str = 'dgp', duration_s: float 
         if est is not None:
             est.close(timeout=5.0)
     return {'robot': robot, 'compensation': compensation, 'names': names, 't': t_arr,
-            'error': rec['error'], 'comp': rec['comp'], 'injected_j': ctl.injected_j,
+            'error': rec['error'], 'comp': rec['comp'], 'confidence': rec['confidence'],
+            'injected_j': ctl.injected_j,
             'answers': answers, 'nonpassive_answers': nonpassive,
             'stale': held_d.stale + held_c.stale, 'clipped': ctl.clipped,
             'wall_s': time.perf_counter() - t0, 'estimator': diag,
@@ -190,3 +217,10 @@ def score(run: dict, start_s: float, end_s: Optional[float] = None):
     sel = (t >= start_s) & (t < (np.inf if end_s is None else end_s))
     e = run['error'][sel]
     return np.sqrt(np.mean(e ** 2, axis=0)), np.max(np.abs(e), axis=0)
+
+
+def windows(run: dict, width_s: float = 1.0) -> np.ndarray:
+    """Tracking RMS per joint over consecutive windows from t = 0: (w, N) [rad]."""
+    t = run['t']
+    k = int(np.floor((t[-1] + 1e-9) / width_s))
+    return np.array([score(run, i * width_s, (i + 1) * width_s)[0] for i in range(k)])
