@@ -420,6 +420,16 @@ class OnlineEstimator:
         """Save the current model atomically to ``path`` (default ``model_path``); returns it."""
         return self._learner.save(path)
 
+    def set_learning(self, on: bool) -> str:
+        """
+        Switch learning on or off: ``reconfigure`` with ``learning`` changed (online.switch).
+
+        Off: the model is proven and saved (to ``model_path`` when set) in the learner's job,
+        then served as it is; ``diagnostics()['learning']`` is 'stopping' until then, 'off'
+        afterwards. Returns what was done.
+        """
+        return self.reconfigure(dataclasses.replace(self.config, learning=bool(on)))
+
     # ------------------------------------------------------------------ diagnostics
     def diagnostics(self) -> dict:
         """
@@ -452,6 +462,7 @@ class OnlineEstimator:
                      'certifies': policy_class(self.config.passivity).certifies,
                      'certified': d.get('certified', False),
                      'stale': d.get('certificate_stale', False),
+                     'learning': d.get('learning', 'on'),
                      'load_error': d.get('load_error', ''), 'warnings': warnings}
             d['level'], d['message'] = self.health.status(learner, state)
             return d

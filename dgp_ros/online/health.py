@@ -94,6 +94,7 @@ class LearnerHealth:
     samples_outliers: int = 0         # isolated far outliers not learned
     inverse_dynamics_errors: int = 0  # samples the inverse dynamics could not process
     samples_awaiting_model: int = 0   # not learned: the robot model (URDF) has not come yet
+    samples_not_learned: int = 0      # not learned: learning is off (serve only)
     time_jumps_back: int = 0
     time_jumps_forward: int = 0
     refits_started: int = 0
@@ -160,6 +161,7 @@ class LearnerHealth:
             'last_refit_optimized': self.last_refit_optimized,
             'inverse_dynamics_errors': self.inverse_dynamics_errors,
             'samples_awaiting_model': self.samples_awaiting_model,
+            'samples_not_learned': self.samples_not_learned,
             'time_jumps_back': self.time_jumps_back, 'time_jumps_forward': self.time_jumps_forward,
             'recertifications': self.recertifications, 'appends': self.appends,
             'absorbs': self.absorbs, 'absorbs_rejected': self.absorbs_rejected,
@@ -238,15 +240,21 @@ class Health:
             else:
                 reasons.append('not yet trained (first fit running)')
             level = WARN
+        elif state.get('learning') == 'stopping':
+            reasons.append('learning stopping: the model is being proven and saved')
         elif state['stale']:
             reasons.append('certificate being re-proven after updates (estimates passive '
                            'pointwise meanwhile)')
         elif state['certifies'] and not state['certified']:
             why = learner.get('last_proof_error', '')
             reasons.append('not certified' + (f' ({why})' if why else '') +
-                           ': every estimate projected onto qd^T tau >= 0; re-proven after '
-                           'new samples')
+                           ': every estimate projected onto qd^T tau >= 0' +
+                           ('; re-proven after new samples' if state.get('learning', 'on') ==
+                            'on' else ''))
             level = WARN
+        if state.get('learning') == 'off':
+            reasons.append(f'learning off: serving the frozen model (guarantee '
+                           f'{learner.get("guarantee", "")})')
         if self.recent_rejected_fraction > REJECT_WARN_FRACTION:
             reasons.append(f'many rejected samples ({100 * self.recent_rejected_fraction:.0f}% '
                            'of recent)')
@@ -307,6 +315,7 @@ class LearnerReport:
                 # answer is the prior mean diag(m_d) qd with m_d >= 0: PSD by construction
                 'guarantee': (str(cert.guarantee) if cert is not None else
                               'none' if self.config.passivity == 'none' else 'psd'),
+                'learning': self.learning_state,
                 'buffer_fill': 0 if self._buf is None else self._buf.size,
                 'refit_running': self.refit_running(),
                 'load_error': self.load_error, 'hyper_samples': self._opt_n,
@@ -360,7 +369,8 @@ class LearnerReport:
         No sample learned for ``STALL_WARN_S`` of learning time although the recent
         candidates spread over many novelty distances (not a hovering state).
         """
-        if self._last_added_t is None or self._last_t is None or self._buf is None or \
+        if not self.config.learning or self._last_added_t is None or self._last_t is None or \
+                self._buf is None or \
                 self._last_t - self._last_added_t < self.STALL_WARN_S or \
                 len(self._recent_q) < 10:
             return False
