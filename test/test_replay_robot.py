@@ -145,3 +145,43 @@ def test_sigint_leaves_partial_csv_and_summary(panda_bag, tmp_path):
     assert s['interrupted'] and 0 < s['estimates'] < 10000
     assert len(rows) - 1 >= s['estimates'] - 1                  # flushed rows, header + data
     assert not os.path.exists(out / 'summary.json.tmp')
+
+
+#: the one-liner a user's controller runs on a saved robot model (only dgp_ros.gp imported)
+ONE_LINER = ("import sys, json, numpy as np; from dgp_ros.gp import load_model; "
+             "m = load_model('friction.npz'); d = np.load('poses.npz'); "
+             "r = m.predict_residual(q=d['q'], qd=d['qd']); "
+             "print(json.dumps({'r': r.tolist(), 'kept': type(m.correction_).__name__}))")
+
+
+def test_a_saved_robot_model_evaluates_with_one_import(tmp_path):
+    """
+    ``dgp-replay --save-model`` with the default prior (auto): the model carries a correction.
+
+    A fresh interpreter that imports ``dgp_ros.gp`` alone evaluates ``predict_residual`` on it
+    (the correction's owner is found through dgp_ros's entry point), equal to the answer of the
+    process that has the robot front end imported.
+    """
+    d = simulate_arm('panda', 3.0, seed=3)
+    bag = tmp_path / 'bag'
+    write_joint_state_bag(bag, list(zip(d['t'], [NAMES] * len(d['t']), d['q'], d['qd'],
+                                        d['effort'])), topic='/joint_states')
+    rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--save-model',
+                      str(tmp_path / 'friction.npz'), '--model', 'diag', '--joints',
+                      ','.join(NAMES), '--no-plots', '-q', '--set', 'buffer_size=60',
+                      '--set', 'min_samples=40', '--set', 'refit_period_s=1.0',
+                      '--set', 'inverse_dynamics=urdf',
+                      '--set', f'urdf_file={example_robot_urdf("panda")}'])
+    assert rc == 0
+    q, qd = d['q'][::250], d['qd'][::250]
+    np.savez(tmp_path / 'poses.npz', q=q, qd=qd)
+    p = subprocess.run([sys.executable, '-c', ONE_LINER], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    assert out['kept'] == 'SavedCorrection'         # loaded without the robot front end
+    here = load_model(tmp_path / 'friction.npz')
+    assert here.correction_ is not None
+    ref = here.predict_residual(q=q, qd=qd)
+    np.testing.assert_array_equal(np.array(out['r']), ref)
+    assert np.abs(ref - here.predict(qd)).max() > 1e-6      # the correction is in it
