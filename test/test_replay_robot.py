@@ -148,10 +148,10 @@ def test_sigint_leaves_partial_csv_and_summary(panda_bag, tmp_path):
 
 
 #: the one-liner a user's controller runs on a saved robot model (only dgp_ros.gp imported)
-ONE_LINER = ("import sys, json, numpy as np; from dgp_ros.gp import load_model; "
-             "m = load_model('friction.npz'); d = np.load('poses.npz'); "
-             "r = m.predict_residual(q=d['q'], qd=d['qd']); "
-             "print(json.dumps({'r': r.tolist(), 'kept': type(m.correction_).__name__}))")
+ONE_LINER = ('import json, numpy as np; from dgp_ros.gp import load_model; '
+             'm = load_model("friction.npz"); d = np.load("poses.npz"); '
+             'r = m.predict_residual(q=d["q"], qd=d["qd"]); '
+             'print(json.dumps({"r": r.tolist(), "kept": type(m.correction_).__name__}))')
 
 
 def test_a_saved_robot_model_evaluates_with_one_import(tmp_path):
