@@ -345,6 +345,7 @@ class OnlineEstimator:
     # ------------------------------------------------------------------ estimates
     def _estimate(self, snap: Optional[Snapshot], Q: np.ndarray):
         """(tau_hat, std, D, source) for velocities Q (k, N) from ``snap``, through the gate."""
+        self.health.answered(_guarantee(snap, self.config.passivity), Q.shape[0])
         return answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
                       self.health, self._learner.note_error, self._plans)
 
@@ -474,3 +475,21 @@ class OnlineEstimator:
     def negative_power_fraction(self) -> Optional[float]:
         """Fraction of the recent learned samples with ``qd . target < 0`` (None: too few)."""
         return self._learner.status().get('negative_power_fraction')
+
+
+def _guarantee(snap: Optional[Snapshot], passivity: str) -> str:
+    """
+    Return the guarantee the answers from ``snap`` are served under (``gp.GUARANTEES`` key).
+
+    The served model's certificate as it is (a record, read at no cost); before the first fit
+    the prior ``diag(m_d)``, ``m_d >= 0``: 'psd' (as the learner's status says).
+    """
+    if passivity == 'none':
+        return 'none'
+    model = None if snap is None else snap.model
+    if model is None:
+        return 'psd'
+    try:
+        return str(model.certificate().guarantee)
+    except Exception:       # noqa: BLE001 - an unfitted model: its answers fall back to the prior
+        return 'psd'

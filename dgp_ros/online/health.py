@@ -182,12 +182,34 @@ class Health:
     nonfinite_outputs: int = 0        # estimates replaced because they were not finite
     answers_bounded: int = 0          # estimates scaled down to the learned force range
     messages_lost: int = 0            # reported lost by the middleware (its message-lost event)
+    #: answers by the guarantee of the certificate they were served under (``GUARANTEES`` keys)
+    answers_by_guarantee: Dict[str, int] = field(default_factory=dict)
     #: where the messages come from: 'live' (a subscription) or 'bag' (a recorded log: a gap in
     #: its stamps is a hole in the data, no queue or network dropped anything)
     source: str = 'live'
     recent_ok: deque = field(default_factory=lambda: deque(maxlen=REJECT_WINDOW))
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
     gaps: GapCounter = field(default_factory=GapCounter)   # messages missing from the stream
+
+    def answered(self, guarantee: str, k: int) -> None:
+        """Count ``k`` answers served under ``guarantee`` (a ``gp.GUARANTEES`` key)."""
+        self.answers_by_guarantee[guarantee] = self.answers_by_guarantee.get(guarantee, 0) + k
+
+    @property
+    def certified_share(self) -> float:
+        """
+        Return the share of the answers served under a proven certificate (NaN before any).
+
+        Proven: the guarantee 'psd' or 'passive-on-domain' (``gp.policy.GUARANTEES``), which
+        the served model's certificate gave when the answer was computed; not 'pointwise' (a
+        projection of each answer) nor 'none'. The prior's answers (before the first fit) count
+        as 'psd': ``diag(m_d)`` with ``m_d >= 0`` is positive semi-definite by construction.
+        """
+        a = self.answers_by_guarantee
+        total = sum(a.values())
+        if not total:
+            return float('nan')
+        return (a.get('psd', 0) + a.get('passive-on-domain', 0)) / total
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
@@ -219,6 +241,8 @@ class Health:
             'nonfinite_outputs': self.nonfinite_outputs,
             'answers_bounded': self.answers_bounded,
             'messages_lost': self.messages_lost,
+            'certified_share': round(self.certified_share, 6),
+            'answers_by_guarantee': dict(self.answers_by_guarantee),
             'latency_median_s': float(np.median(lat)) if lat is not None else float('nan'),
             'latency_p99_s': float(np.percentile(lat, 99)) if lat is not None else float('nan'),
         }
