@@ -22,14 +22,25 @@ from dgp_ros.gp import load_model
 NAMES = list(ARM_JOINTS['panda'])
 
 
-@pytest.fixture(scope='module')
-def panda_bag(tmp_path_factory):
-    d = simulate_arm('panda', 10.0, seed=3)
+def _bag(tmp_path_factory, seconds):
+    d = simulate_arm('panda', seconds, seed=3)
     bag = tmp_path_factory.mktemp('bag') / 'panda'
     samples = [(t, NAMES + ['panda_finger_joint1'], np.r_[q, 0.02], np.r_[v, 0.0],
                 np.r_[e, 0.1]) for t, q, v, e in zip(d['t'], d['q'], d['qd'], d['effort'])]
     write_joint_state_bag(bag, samples, topic='/joint_states')
     return bag, d
+
+
+@pytest.fixture(scope='module')
+def panda_bag(tmp_path_factory):
+    """Return 10 s of the simulated Panda: one period of its excitation (held-out scores)."""
+    return _bag(tmp_path_factory, 10.0)
+
+
+@pytest.fixture(scope='module')
+def short_bag(tmp_path_factory):
+    """Return its first 3 s: what the checks of warnings and errors need (300 learned samples)."""
+    return _bag(tmp_path_factory, 3.0)
 
 
 COMMON = ['--model', 'diag', '--joints', ','.join(NAMES), '--no-plots', '-q',
@@ -58,14 +69,14 @@ def test_urdf_replay_learns_friction_and_saves_a_loadable_model(panda_bag, tmp_p
     assert np.einsum('ij,ij->i', Qs, m.predict(Qs)).min() >= 0
 
 
-def test_replay_with_the_default_prior_prints_no_python_warning(panda_bag, tmp_path, recwarn):
+def test_replay_with_the_default_prior_prints_no_python_warning(short_bag, tmp_path, recwarn):
     """
     Replay prints no RuntimeWarning.
 
     The Stribeck prior fitted to an empty buffer (the first answers) warned 'Mean of empty
     slice' on every replay with inverse dynamics.
     """
-    bag, _ = panda_bag
+    bag, _ = short_bag
     rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--joints', ','.join(NAMES),
                       '--model', 'diag', '--no-plots', '-q', '--set', 'inverse_dynamics=urdf',
                       '--set', f'urdf_file={example_robot_urdf("panda")}',
@@ -75,16 +86,16 @@ def test_replay_with_the_default_prior_prints_no_python_warning(panda_bag, tmp_p
         [str(w.message) for w in recwarn]
 
 
-def test_urdf_without_a_urdf_is_refused_offline(panda_bag, tmp_path, capsys):
+def test_urdf_without_a_urdf_is_refused_offline(short_bag, tmp_path, capsys):
     """The node waits for /robot_description; a bag replay has no such topic: exit 2, why."""
-    bag, _ = panda_bag
+    bag, _ = short_bag
     rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--set', 'inverse_dynamics=urdf'])
     err = capsys.readouterr().err
     assert rc == 2 and 'urdf_file' in err and '/robot_description' in err, err
 
 
-def test_raw_effort_replay_warns_with_the_reason(panda_bag, tmp_path, capsys):
-    bag, _ = panda_bag
+def test_raw_effort_replay_warns_with_the_reason(short_bag, tmp_path, capsys):
+    bag, _ = short_bag
     rc = replay_main([str(bag), '--out', str(tmp_path / 'o')] + COMMON)
     err = capsys.readouterr().err
     assert rc == 0
