@@ -236,7 +236,7 @@ def run_parameter(a, data, work, env, log) -> dict:
                  on_s=again['_t'] - t_on)
     finally:
         _stop(pl, signal.SIGTERM)
-        _stop(li)
+        _stop(li, wait=180.0)       # it deserializes every answer before it writes
         _stop(est)
         w.close()
     r['scored'] = _score_answers(_answers(work, 'p'), *window, frozen_path)
@@ -269,7 +269,7 @@ def run_command_line(a, data, work, env, log, model_path) -> dict:
                  accepted_off=int(end['messages_accepted']))
     finally:
         _stop(pl, signal.SIGTERM)
-        _stop(li)
+        _stop(li, wait=180.0)       # it deserializes every answer before it writes
         _stop(est)
         w.close()
     r['scored'] = _score_answers(_answers(work, 'c'), first['_wall'] + 0.5, t_end, model_path)
