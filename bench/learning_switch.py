@@ -157,7 +157,7 @@ def _listener(work, tag):
 
 def _answers(work, tag):
     """Return (stamps s, velocities, efforts) of the answers the listener ``tag`` received."""
-    z = np.load(os.path.join(work, f'answers_{tag}.npz'))
+    z = np.load(os.path.join(work, f'answers_{tag}.npz'), allow_pickle=False)
     return z['ans'][:, 0] * 1e-9, z['velocity'], z['effort']
 
 
