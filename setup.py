@@ -42,5 +42,10 @@ setup(
             'dgp-record = dgp_ros.bags.cli:record_main',
             'dgp-play = dgp_ros.bags.cli:play_main',
         ],
+        # what a saved model may carry besides its damping force, rebuilt by kind when
+        # dgp_ros.gp evaluates it (gp/persistence.py: gp imports no layer above it)
+        'dgp_ros.corrections': [
+            'conservative = dgp_ros.dynamics.conservative:Correction.from_dict',
+        ],
     },
 )

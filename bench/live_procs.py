@@ -7,9 +7,10 @@ The processes of bench/arm_live.py, one role each: player, listener, prober, est
   trajectory at its own rate, and every stamp is the message's deadline on the wall clock (the
   answers' age is then wall time minus stamp). ``frame_id`` is the sequence number.
 * ``listener``: receives the measurements and the answers (raw CDR; stamps and the answers'
-  effort deserialized after the run) and /diagnostics. ``prober``: the same without the streams,
-  probing services under the stream from a process that has nothing else to do (a client's first
-  call, which also waits for DDS to match its reply reader, is saved apart as ``first``):
+  effort and velocity deserialized after the run) and /diagnostics. ``prober``: the same
+  without the streams, probing services under the stream from a process that has nothing
+  else to do (a client's first call, which also waits for DDS to match its reply reader, is
+  saved apart as ``first``):
   ``/dgp_estimator/get_parameters`` (served by the executor alone) and ``~/refit`` (served by
   the learner). It uses the node's own wait-set executor (``dgp_ros.nodes.executor``) with batch
   handlers, about 30 us of Python per message, so that it is not the bottleneck it would be with
@@ -293,10 +294,12 @@ def listener(a) -> None:
         if time.monotonic() - t0 > 1.0:
             probes[kind].append((now(), float('inf')))
     from rclpy.serialization import deserialize_message
-    efforts = np.array([deserialize_message(r, JointState).effort for r in raws]) if raws \
-        else np.zeros((0, 0))
+    msgs = [deserialize_message(r, JointState) for r in raws]
+    efforts = np.array([m.effort for m in msgs]) if msgs else np.zeros((0, 0))
+    velocities = np.array([m.velocity for m in msgs]) if msgs else np.zeros((0, 0))
     np.savez(a.out, meas=np.array(meas, dtype=float).reshape(-1, 2),
              ans=np.array(ans, dtype=float).reshape(-1, 2), effort=efforts,
+             velocity=velocities,
              diags=json.dumps(diags), probes=json.dumps(probes), first=json.dumps(first))
     ex.shutdown()
     node.destroy_node()

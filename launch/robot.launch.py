@@ -2,7 +2,8 @@
 Start the D-GP estimator for a robot that already runs robot_state_publisher.
 
 Full ROS 2 install: ``ros2 launch dgp_ros robot.launch.py [joint_states:=/joint_states]
-[model_path:=$HOME/.ros/friction.npz]``.
+[model_path:=$HOME/.ros/friction.npz] [learning:=false]``: ``learning:=false`` with a
+``model_path`` serves that model frozen (commission, then deploy: the README).
 
 The estimator subscribes to the robot's joint states (raw ``sensor_msgs/JointState`` with
 position, velocity and measured effort), takes the URDF from ``/robot_description`` (transient
@@ -29,12 +30,15 @@ def generate_launch_description():
                               description="the robot driver's JointState topic"),
         DeclareLaunchArgument('model_path', default_value='',
                               description='model file (.npz): loaded at start, saved on exit'),
+        DeclareLaunchArgument('learning', default_value='true',
+                              description='false: serve only the model of model_path'),
         DeclareLaunchArgument('use_sim_time', default_value='false'),
         Node(package='dgp_ros', executable='estimator', name='dgp_estimator', output='screen',
              remappings=[('generalized_state', LaunchConfiguration('joint_states'))],
              parameters=[est_yaml, {
                  'inverse_dynamics': 'urdf',         # the URDF comes from /robot_description
                  'model_path': LaunchConfiguration('model_path'),
+                 'learning': ParameterValue(LaunchConfiguration('learning'), value_type=bool),
                  'use_sim_time': ParameterValue(LaunchConfiguration('use_sim_time'),
                                                 value_type=bool)}]),
     ])

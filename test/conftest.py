@@ -5,7 +5,9 @@ DDS: every test session gets its own ROS_DOMAIN_ID and localhost-only discovery,
 rclpy context exists, so parallel sessions on one machine (or CI next to a developer) never see
 each other's nodes. The id is drawn at random and claimed with an exclusive lock file held for
 the whole session, so two concurrent sessions never draw the same one. Child processes inherit
-the environment.
+the environment. With pytest-xdist (``-n``, pytest.ini) every worker is a process of its own
+that imports this file, so each worker claims a domain of its own the same way: the tests of
+one worker never see another worker's nodes.
 
 SIGINT: a session started as a background job of a non-interactive shell (``cmd &`` in a script,
 as two concurrent suite runs are) inherits SIGINT *ignored*, and so does every child it starts;

@@ -221,3 +221,27 @@ def test_arm_floor_quick(tmp_path):
     assert all(numbers(r[2])[0] > 0 for r in rows), rows
     est = [r for r in rows if 'estimator' in r[1]]
     assert est and all(r[4].endswith('x') for r in est), est
+
+
+@pytest.mark.slow
+def test_learning_switch_quick(tmp_path):
+    """
+    The learning switch live on the real Panda stream (bench/learning_switch.py --quick).
+
+    Switched off at run time (a parameter set): nothing is added once ``learning: off``, the
+    certificate is proven and not stale, and the answers are the saved model's (to rounding);
+    switched on, learning resumes. Started with ``learning:=false``: nothing is added.
+    """
+    import json
+    from certification import panda_dir
+    if panda_dir() is None:
+        pytest.skip('the real Panda log (../shared/data/panda_real) is not here')
+    run('learning_switch.py', tmp_path)
+    section(tmp_path, 'learning_switch')
+    p, c = json.loads((tmp_path / 'bench' / 'learning_switch_runs.json').read_text())
+    assert p['set_off_ok'] and p['added_at_end'] == p['added_at_off'], p
+    assert p['certified'] == 'True' and p['stale'] == 'False', p
+    assert p['scored']['answers'] > 100 and p['scored']['max_rel_diff'] <= 1e-12, p
+    assert p['set_on_ok'] and p['learning_after_on'] == 'on' and p['added_after_on'] > 0, p
+    assert c['learning'] == 'off' and c['added_at_end'] == 0 and c['load_error'] == '', c
+    assert c['scored']['answers'] > 100 and c['scored']['max_rel_diff'] <= 1e-12, c

@@ -305,3 +305,25 @@ def test_replay_is_deterministic_and_writes_outputs(tmp_path):
     assert (tmp_path / 'o1' / 'estimates.csv').read_text() == \
         (tmp_path / 'o2' / 'estimates.csv').read_text()
     assert s1['nmse'] == s2['nmse'] and s1['config']['refit_mode'] == 'sync'
+
+
+def test_replay_with_learning_off_serves_the_model_file_frozen(tmp_path):
+    """--set learning=false --set model_path=M: the answers of the deployed node, M unchanged."""
+    from dgp_ros.gp import load_model
+    Q, T = passive_data(120, N=2, seed=3)
+    rows = [(2.0 + 0.05 * i, ['x', 'y'], Q[i], T[i]) for i in range(120)]
+    bag = write_js_bag(tmp_path / 'b', rows)
+    model = tmp_path / 'm.npz'
+    run(bag, tmp_path / 'o1', config=build_config(dict(PARAMS, min_samples=8)), plots=False,
+        save_model=str(model))
+    before = model.read_bytes()
+    cfg = build_config(dict(PARAMS, min_samples=8, learning=False, model_path=str(model)))
+    s = run(bag, tmp_path / 'o2', config=cfg, plots=False)
+    assert model.read_bytes() == before                 # read, never written
+    assert s['samples_added'] == 0 and 'learning off' in s['status']['message'], s['status']
+    rows_out = (tmp_path / 'o2' / 'estimates.csv').read_text().splitlines()
+    assert len(rows_out) == 121
+    m = load_model(model)
+    assert np.abs(m.predict(Q[:5])).max() > 0
+    # a learning replay still never touches model_path
+    assert build_config(dict(PARAMS, model_path=str(model))).model_path == ''

@@ -22,14 +22,25 @@ from dgp_ros.gp import load_model
 NAMES = list(ARM_JOINTS['panda'])
 
 
-@pytest.fixture(scope='module')
-def panda_bag(tmp_path_factory):
-    d = simulate_arm('panda', 10.0, seed=3)
+def _bag(tmp_path_factory, seconds):
+    d = simulate_arm('panda', seconds, seed=3)
     bag = tmp_path_factory.mktemp('bag') / 'panda'
     samples = [(t, NAMES + ['panda_finger_joint1'], np.r_[q, 0.02], np.r_[v, 0.0],
                 np.r_[e, 0.1]) for t, q, v, e in zip(d['t'], d['q'], d['qd'], d['effort'])]
     write_joint_state_bag(bag, samples, topic='/joint_states')
     return bag, d
+
+
+@pytest.fixture(scope='module')
+def panda_bag(tmp_path_factory):
+    """Return 10 s of the simulated Panda: one period of its excitation (held-out scores)."""
+    return _bag(tmp_path_factory, 10.0)
+
+
+@pytest.fixture(scope='module')
+def short_bag(tmp_path_factory):
+    """Return its first 3 s: what the checks of warnings and errors need (300 learned samples)."""
+    return _bag(tmp_path_factory, 3.0)
 
 
 COMMON = ['--model', 'diag', '--joints', ','.join(NAMES), '--no-plots', '-q',
@@ -58,14 +69,14 @@ def test_urdf_replay_learns_friction_and_saves_a_loadable_model(panda_bag, tmp_p
     assert np.einsum('ij,ij->i', Qs, m.predict(Qs)).min() >= 0
 
 
-def test_replay_with_the_default_prior_prints_no_python_warning(panda_bag, tmp_path, recwarn):
+def test_replay_with_the_default_prior_prints_no_python_warning(short_bag, tmp_path, recwarn):
     """
     Replay prints no RuntimeWarning.
 
     The Stribeck prior fitted to an empty buffer (the first answers) warned 'Mean of empty
     slice' on every replay with inverse dynamics.
     """
-    bag, _ = panda_bag
+    bag, _ = short_bag
     rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--joints', ','.join(NAMES),
                       '--model', 'diag', '--no-plots', '-q', '--set', 'inverse_dynamics=urdf',
                       '--set', f'urdf_file={example_robot_urdf("panda")}',
@@ -75,16 +86,16 @@ def test_replay_with_the_default_prior_prints_no_python_warning(panda_bag, tmp_p
         [str(w.message) for w in recwarn]
 
 
-def test_urdf_without_a_urdf_is_refused_offline(panda_bag, tmp_path, capsys):
+def test_urdf_without_a_urdf_is_refused_offline(short_bag, tmp_path, capsys):
     """The node waits for /robot_description; a bag replay has no such topic: exit 2, why."""
-    bag, _ = panda_bag
+    bag, _ = short_bag
     rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--set', 'inverse_dynamics=urdf'])
     err = capsys.readouterr().err
     assert rc == 2 and 'urdf_file' in err and '/robot_description' in err, err
 
 
-def test_raw_effort_replay_warns_with_the_reason(panda_bag, tmp_path, capsys):
-    bag, _ = panda_bag
+def test_raw_effort_replay_warns_with_the_reason(short_bag, tmp_path, capsys):
+    bag, _ = short_bag
     rc = replay_main([str(bag), '--out', str(tmp_path / 'o')] + COMMON)
     err = capsys.readouterr().err
     assert rc == 0
@@ -145,3 +156,43 @@ def test_sigint_leaves_partial_csv_and_summary(panda_bag, tmp_path):
     assert s['interrupted'] and 0 < s['estimates'] < 10000
     assert len(rows) - 1 >= s['estimates'] - 1                  # flushed rows, header + data
     assert not os.path.exists(out / 'summary.json.tmp')
+
+
+#: the one-liner a user's controller runs on a saved robot model (only dgp_ros.gp imported)
+ONE_LINER = ('import json, numpy as np; from dgp_ros.gp import load_model; '
+             'm = load_model("friction.npz"); d = np.load("poses.npz"); '
+             'r = m.predict_residual(q=d["q"], qd=d["qd"]); '
+             'print(json.dumps({"r": r.tolist(), "kept": type(m.correction_).__name__}))')
+
+
+def test_a_saved_robot_model_evaluates_with_one_import(tmp_path):
+    """
+    ``dgp-replay --save-model`` with the default prior (auto): the model carries a correction.
+
+    A fresh interpreter that imports ``dgp_ros.gp`` alone evaluates ``predict_residual`` on it
+    (the correction's owner is found through dgp_ros's entry point), equal to the answer of the
+    process that has the robot front end imported.
+    """
+    d = simulate_arm('panda', 3.0, seed=3)
+    bag = tmp_path / 'bag'
+    write_joint_state_bag(bag, list(zip(d['t'], [NAMES] * len(d['t']), d['q'], d['qd'],
+                                        d['effort'])), topic='/joint_states')
+    rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--save-model',
+                      str(tmp_path / 'friction.npz'), '--model', 'diag', '--joints',
+                      ','.join(NAMES), '--no-plots', '-q', '--set', 'buffer_size=60',
+                      '--set', 'min_samples=40', '--set', 'refit_period_s=1.0',
+                      '--set', 'inverse_dynamics=urdf',
+                      '--set', f'urdf_file={example_robot_urdf("panda")}'])
+    assert rc == 0
+    q, qd = d['q'][::250], d['qd'][::250]
+    np.savez(tmp_path / 'poses.npz', q=q, qd=qd)
+    p = subprocess.run([sys.executable, '-c', ONE_LINER], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    assert out['kept'] == 'SavedCorrection'         # loaded without the robot front end
+    here = load_model(tmp_path / 'friction.npz')
+    assert here.correction_ is not None
+    ref = here.predict_residual(q=q, qd=qd)
+    np.testing.assert_array_equal(np.array(out['r']), ref)
+    assert np.abs(ref - here.predict(qd)).max() > 1e-6      # the correction is in it

@@ -243,6 +243,21 @@ def plot(res: dict, out_dir: str) -> List[str]:
     return files
 
 
+def _certified_share(diag: Optional[dict]) -> Optional[float]:
+    """Return the estimator's ``certified_share`` from its last /diagnostics (None if absent)."""
+    try:
+        v = float((diag or {}).get('certified_share', 'nan'))
+    except (TypeError, ValueError):
+        return None
+    return None if v != v else v
+
+
+def _share_text(diag: dict) -> str:
+    share = _certified_share(diag)
+    return ('-' if share is None else f'{100 * share:.1f} % '
+            f'(by guarantee: {diag.get("answers_by_guarantee", "")})')
+
+
 def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
     print('\n=== dgp_ros demo summary ' + '=' * 50)
     print(f'wall time {wall_s:.1f} s; measurements {res["measurements"]}, answers '
@@ -283,6 +298,8 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
               f'{diag.get("samples_rate_limited")}, rejected '
               f'{diag.get("rejected_total")}, passivity fallbacks '
               f'{diag.get("passivity_fallbacks")}')
+        print(f'answers under a proven certificate (psd or passive-on-domain): '
+              f'{_share_text(diag)}; guarantee now {diag.get("guarantee")}')
         print(f'status: {["OK", "WARN", "ERROR", "STALE"][min(int(diag["level"]), 3)]}: '
               f'{diag.get("message")}')
     print('=' * 76, flush=True)
@@ -425,6 +442,7 @@ def _run(args, env: dict, node, ex, est_cmd: List[str], sim_cmd: List[str],
             files = plot(res, args.out)
             summary = {k: v for k, v in res.items() if not isinstance(v, np.ndarray)}
             summary['diagnostics'] = rec.diag
+            summary['certified_share'] = _certified_share(rec.diag)
             summary['wall_time_s'] = wall
             summary['args'] = vars(args)
             with open(os.path.join(args.out, 'summary.json'), 'w') as f:

@@ -153,7 +153,11 @@ def build_config(params: Optional[dict] = None, **overrides):
             d[k] = v
     d.update({k: v for k, v in overrides.items() if v is not None})
     d['refit_mode'] = 'sync'
-    d['model_path'] = ''  # replay never reads or overwrites a model file
+    if d.get('learning', True) is not False:
+        # learning, the estimator would overwrite model_path at every refit: replay never writes
+        # a model file but with --save-model; with learning=false it reads model_path and
+        # serves it frozen (what the deployed node answers; nothing is written)
+        d['model_path'] = ''
     try:
         cfg = EstimatorConfig.from_dict(d).validate()
     except (TypeError, ValueError) as exc:

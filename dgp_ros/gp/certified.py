@@ -232,6 +232,17 @@ class CertifiedPolicy(PassivityPolicy):
         self.cert = self.cert.with_details(seconds=time.perf_counter() - t0)
         return self.cert
 
+    def reprove(self, post):
+        """
+        Prove as a fit does (``enforce``), unless the certificate holds now; returns ``post``.
+
+        Every candidate domain of the current data from scratch, with local repairs: also a
+        model whose last proof failed (on the data it had then) or was never made.
+        """
+        if self.cert is not None and self.cert.certified:
+            return post
+        return self.enforce(post, prove=True)
+
     def restore_certificate(self, post, saved):
         """
         Distrust a loaded certificate: re-derive it.

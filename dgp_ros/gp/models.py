@@ -412,14 +412,19 @@ class _DGP:
     def certificate_stale(self) -> bool:
         return bool(self.certificate().stale)
 
-    def recertify(self) -> Certificate:
+    def recertify(self, full: bool = False) -> Certificate:
         """
         Re-prove a stale structural certificate for the current weights.
 
         It takes milliseconds to seconds of branch-and-bound; the online estimator runs it in its
-        refit worker. A no-op when nothing is stale.
+        refit worker. A no-op when nothing is stale. ``full``: unless the certificate holds, the
+        proof a fit makes, from scratch, also after a failed one (a model that stops learning).
         """
-        return self.policy_.recertify(self._check_fitted())
+        p = self._check_fitted()
+        if full:
+            self.posterior_ = self.policy_.reprove(p)
+            return self.policy_.cert
+        return self.policy_.recertify(p)
 
     # ------------------------------------------------------------------ persistence
     def save(self, path) -> None:

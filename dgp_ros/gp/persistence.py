@@ -20,16 +20,23 @@ Reading trusts nothing in the file:
 
 A model may carry a *correction* besides its damping force (the online learner's conservative
 correction of a rigid-body model, ``correction_``). Its record is saved by kind and rebuilt by
-the module that owns the kind, which registers it here when imported (``register_correction``:
-``dgp_ros.dynamics`` registers 'conservative'); this package imports none of them. A model whose
-correction's owner is not imported loads all the same (its damping force needs no correction):
-the record is kept as a :class:`SavedCorrection`, saved back unchanged, and evaluating it
-(``predict_residual``) raises ValueError naming the module to import.
+the code that owns the kind; this package imports none of it. Owners are found two ways: a
+module registers its kinds when imported (``register_correction``: ``dgp_ros.dynamics``
+registers 'conservative'), and an installed package declares them as entry points of the group
+``dgp_ros.corrections`` (``ENTRY_POINTS``; dgp_ros's ``setup.py`` declares 'conservative'),
+found with ``importlib.metadata`` by the record's kind when a saved correction is first
+evaluated. So ``load_model(path).predict_residual(q=..., qd=...)`` works after importing
+``dgp_ros.gp`` alone, and the owner's import (pinocchio for a URDF basis) is paid only then. A
+model whose correction has no owner loads all the same (its damping force needs none): the
+record is kept as a :class:`SavedCorrection`, saved back unchanged, and evaluating it raises
+ValueError naming what to install or import. A kind is only ever looked up among installed
+entry points, never imported by a name a file gives.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 import hashlib
+import importlib.metadata
 import io
 import json
 import os
@@ -46,7 +53,7 @@ from .posterior import Hyper, Posterior
 
 __all__ = ['save_model', 'read_model', 'ModelFile', 'is_model_file', 'FORMAT_VERSION',
            'MAX_JOINTS', 'MAX_SAMPLES', 'register_correction', 'rebuild_correction',
-           'SavedCorrection']
+           'SavedCorrection', 'ENTRY_POINTS']
 
 FORMAT_VERSION = 2
 MAX_JOINTS = 64
@@ -309,6 +316,9 @@ def _upgrade_v1(header: dict, arrays: dict, kind: str, N: int):
 _CORRECTIONS: dict = {}
 #: the module that registers each kind the package writes (named in an error, never imported)
 _OWNERS = {'conservative': 'dgp_ros.dynamics'}
+#: the entry-point group in which installed packages declare correction kinds: the name is the
+#: kind, the object its rebuilder ``from_dict(record)``
+ENTRY_POINTS = 'dgp_ros.corrections'
 
 
 def register_correction(kind: str, from_dict) -> None:
@@ -326,6 +336,23 @@ def register_correction(kind: str, from_dict) -> None:
 def _kind(record: dict) -> str:
     # a record without a kind was written before kinds were recorded: the conservative one
     return str(record.get('kind', 'conservative'))
+
+
+def _rebuilder(kind: str):
+    """Return the rebuilder of ``kind``: registered, else an installed entry point; or None."""
+    from_dict = _CORRECTIONS.get(kind)
+    if from_dict is not None:
+        return from_dict
+    try:
+        found = [ep for ep in importlib.metadata.entry_points(group=ENTRY_POINTS)
+                 if ep.name == kind]
+    except Exception:       # noqa: BLE001 - broken metadata: as if nothing were declared
+        found = []
+    for ep in found[:1]:
+        from_dict = ep.load()           # imports the owner, which may register it itself
+        _CORRECTIONS.setdefault(kind, from_dict)
+        return _CORRECTIONS[kind]
+    return None
 
 
 def rebuild_correction(record: dict):
@@ -351,11 +378,13 @@ class SavedCorrection:
         """Return the correction at poses Q (k, N), (k, N) N m (see ``register_correction``)."""
         if self._built is None:
             kind = _kind(self.record)
-            from_dict = _CORRECTIONS.get(kind)
+            from_dict = _rebuilder(kind)
             if from_dict is None:
                 owner = _OWNERS.get(kind, 'the module that defines it')
                 raise ValueError(f'this model carries a {kind!r} correction of the rigid-body '
-                                 f'model; import {owner} (which rebuilds it) to evaluate it')
+                                 f'model and no installed package declares it (entry point '
+                                 f'group {ENTRY_POINTS}); install dgp_ros or import {owner} '
+                                 '(which rebuilds it) to evaluate it')
             self._built = from_dict(self.record)
         return self._built(Q)
 

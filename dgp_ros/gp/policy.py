@@ -198,6 +198,11 @@ class PassivityPolicy:
         """Re-prove a stale certificate (may take seconds: refit worker only)."""
         return self.cert
 
+    def reprove(self, post):
+        """Prove from scratch unless the certificate holds (``recertify(full=True)``); post."""
+        self.recertify(post)
+        return post
+
     def restore_certificate(self, post, saved: Optional[Certificate]) -> None:
         """
         Re-derive the certificate after loading a model.

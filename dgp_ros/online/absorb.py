@@ -119,7 +119,7 @@ class Absorber:
         as soon as the last rebase's cost allows (at most a third of the time rebasing; a ninth
         while samples queue up for the learner: taking every sample in comes first).
         """
-        if self._model is None:
+        if self._model is None or not self.config.learning:
             return False
         waiting = self.unheld and (not self.appending or self._append_blocked)
         if not (waiting or self._reselect_due() or

@@ -229,7 +229,7 @@ class LearnerLoop:
                 self.waits.append((msg[1], msg[2]))
                 self.sent_at = 0.0               # publish the newest at once
             else:
-                if kind in ('refit', 'save', 'samples'):
+                if kind in ('refit', 'save', 'samples', 'reconfigure'):
                     self._drain()                # they act on what was sent before them
                 self._reply(kind, msg[1], msg[2:])
         return True

@@ -69,6 +69,10 @@ PARAMS = {p.name: p for p in (
     ParamSpec('model_path', 'str', '', f'model file ({MODEL_SUFFIX}): loaded at start, saved on '
               'refit, shutdown and ~/save_model; only a dgp_ros model file is overwritten',
               max_len=4096),
+    ParamSpec('learning', 'bool', True, 'learn from the stream; false: serve only the current '
+              'or loaded model (nothing learned, no refits, ~/friction_residual still '
+              'published); switching it off proves the model once with the full proof and saves '
+              'it to model_path; switching it on resumes learning'),
     ParamSpec('refit_mode', 'str', 'process', 'where the learner runs: process (a child '
               'process at lower priority; answers never wait for learning), async (this '
               'process, refits in a background thread) or sync (in line: replay, tests)',
@@ -125,6 +129,7 @@ class EstimatorConfig:
     joints: List[str] = field(default_factory=list)
     max_joints: int = PARAMS['max_joints'].default
     model_path: str = PARAMS['model_path'].default
+    learning: bool = PARAMS['learning'].default
     refit_mode: str = PARAMS['refit_mode'].default
     max_abs_velocity: float = PARAMS['max_abs_velocity'].default
     max_abs_effort: float = PARAMS['max_abs_effort'].default

@@ -345,6 +345,7 @@ class OnlineEstimator:
     # ------------------------------------------------------------------ estimates
     def _estimate(self, snap: Optional[Snapshot], Q: np.ndarray):
         """(tau_hat, std, D, source, confidence) at velocities Q (k, N) from ``snap`` (gate)."""
+        self.health.answered(_guarantee(snap, self.config.passivity), Q.shape[0])
         return answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
                       self.health, self._learner.note_error, self._plans)
 
@@ -420,6 +421,16 @@ class OnlineEstimator:
         """Save the current model atomically to ``path`` (default ``model_path``); returns it."""
         return self._learner.save(path)
 
+    def set_learning(self, on: bool) -> str:
+        """
+        Switch learning on or off: ``reconfigure`` with ``learning`` changed (online.switch).
+
+        Off: the model is proven and saved (to ``model_path`` when set) in the learner's job,
+        then served as it is; ``diagnostics()['learning']`` is 'stopping' until then, 'off'
+        afterwards. Returns what was done.
+        """
+        return self.reconfigure(dataclasses.replace(self.config, learning=bool(on)))
+
     # ------------------------------------------------------------------ diagnostics
     def diagnostics(self) -> dict:
         """
@@ -452,6 +463,7 @@ class OnlineEstimator:
                      'certifies': policy_class(self.config.passivity).certifies,
                      'certified': d.get('certified', False),
                      'stale': d.get('certificate_stale', False),
+                     'learning': d.get('learning', 'on'),
                      'load_error': d.get('load_error', ''), 'warnings': warnings}
             d['level'], d['message'] = self.health.status(learner, state)
             return d
@@ -463,3 +475,21 @@ class OnlineEstimator:
     def negative_power_fraction(self) -> Optional[float]:
         """Fraction of the recent learned samples with ``qd . target < 0`` (None: too few)."""
         return self._learner.status().get('negative_power_fraction')
+
+
+def _guarantee(snap: Optional[Snapshot], passivity: str) -> str:
+    """
+    Return the guarantee the answers from ``snap`` are served under (``gp.GUARANTEES`` key).
+
+    The served model's certificate as it is (a record, read at no cost); before the first fit
+    the prior ``diag(m_d)``, ``m_d >= 0``: 'psd' (as the learner's status says).
+    """
+    if passivity == 'none':
+        return 'none'
+    model = None if snap is None else snap.model
+    if model is None:
+        return 'psd'
+    try:
+        return str(model.certificate().guarantee)
+    except Exception:       # noqa: BLE001 - an unfitted model: its answers fall back to the prior
+        return 'psd'

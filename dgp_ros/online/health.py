@@ -94,6 +94,7 @@ class LearnerHealth:
     samples_outliers: int = 0         # isolated far outliers not learned
     inverse_dynamics_errors: int = 0  # samples the inverse dynamics could not process
     samples_awaiting_model: int = 0   # not learned: the robot model (URDF) has not come yet
+    samples_not_learned: int = 0      # not learned: learning is off (serve only)
     time_jumps_back: int = 0
     time_jumps_forward: int = 0
     refits_started: int = 0
@@ -162,6 +163,7 @@ class LearnerHealth:
             'last_refit_optimized': self.last_refit_optimized,
             'inverse_dynamics_errors': self.inverse_dynamics_errors,
             'samples_awaiting_model': self.samples_awaiting_model,
+            'samples_not_learned': self.samples_not_learned,
             'time_jumps_back': self.time_jumps_back, 'time_jumps_forward': self.time_jumps_forward,
             'recertifications': self.recertifications, 'appends': self.appends,
             'absorbs': self.absorbs, 'absorbs_rejected': self.absorbs_rejected,
@@ -182,12 +184,34 @@ class Health:
     nonfinite_outputs: int = 0        # estimates replaced because they were not finite
     answers_bounded: int = 0          # estimates scaled down to the learned force range
     messages_lost: int = 0            # reported lost by the middleware (its message-lost event)
+    #: answers by the guarantee of the certificate they were served under (``GUARANTEES`` keys)
+    answers_by_guarantee: Dict[str, int] = field(default_factory=dict)
     #: where the messages come from: 'live' (a subscription) or 'bag' (a recorded log: a gap in
     #: its stamps is a hole in the data, no queue or network dropped anything)
     source: str = 'live'
     recent_ok: deque = field(default_factory=lambda: deque(maxlen=REJECT_WINDOW))
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
     gaps: GapCounter = field(default_factory=GapCounter)   # messages missing from the stream
+
+    def answered(self, guarantee: str, k: int) -> None:
+        """Count ``k`` answers served under ``guarantee`` (a ``gp.GUARANTEES`` key)."""
+        self.answers_by_guarantee[guarantee] = self.answers_by_guarantee.get(guarantee, 0) + k
+
+    @property
+    def certified_share(self) -> float:
+        """
+        Return the share of the answers served under a proven certificate (NaN before any).
+
+        Proven: the guarantee 'psd' or 'passive-on-domain' (``gp.policy.GUARANTEES``), which
+        the served model's certificate gave when the answer was computed; not 'pointwise' (a
+        projection of each answer) nor 'none'. The prior's answers (before the first fit) count
+        as 'psd': ``diag(m_d)`` with ``m_d >= 0`` is positive semi-definite by construction.
+        """
+        a = self.answers_by_guarantee
+        total = sum(a.values())
+        if not total:
+            return float('nan')
+        return (a.get('psd', 0) + a.get('passive-on-domain', 0)) / total
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
@@ -219,6 +243,8 @@ class Health:
             'nonfinite_outputs': self.nonfinite_outputs,
             'answers_bounded': self.answers_bounded,
             'messages_lost': self.messages_lost,
+            'certified_share': round(self.certified_share, 6),
+            'answers_by_guarantee': dict(self.answers_by_guarantee),
             'latency_median_s': float(np.median(lat)) if lat is not None else float('nan'),
             'latency_p99_s': float(np.percentile(lat, 99)) if lat is not None else float('nan'),
         }
@@ -240,15 +266,21 @@ class Health:
             else:
                 reasons.append('not yet trained (first fit running)')
             level = WARN
+        elif state.get('learning') == 'stopping':
+            reasons.append('learning stopping: the model is being proven and saved')
         elif state['stale']:
             reasons.append('certificate being re-proven after updates (estimates passive '
                            'pointwise meanwhile)')
         elif state['certifies'] and not state['certified']:
             why = learner.get('last_proof_error', '')
             reasons.append('not certified' + (f' ({why})' if why else '') +
-                           ': every estimate projected onto qd^T tau >= 0; re-proven after '
-                           'new samples')
+                           ': every estimate projected onto qd^T tau >= 0' +
+                           ('; re-proven after new samples' if state.get('learning', 'on') ==
+                            'on' else ''))
             level = WARN
+        if state.get('learning') == 'off':
+            reasons.append(f'learning off: serving the frozen model (guarantee '
+                           f'{learner.get("guarantee", "")})')
         if self.recent_rejected_fraction > REJECT_WARN_FRACTION:
             reasons.append(f'many rejected samples ({100 * self.recent_rejected_fraction:.0f}% '
                            'of recent)')
@@ -309,6 +341,7 @@ class LearnerReport:
                 # answer is the prior mean diag(m_d) qd with m_d >= 0: PSD by construction
                 'guarantee': (str(cert.guarantee) if cert is not None else
                               'none' if self.config.passivity == 'none' else 'psd'),
+                'learning': self.learning_state,
                 'buffer_fill': 0 if self._buf is None else self._buf.size,
                 'refit_running': self.refit_running(),
                 'load_error': self.load_error, 'hyper_samples': self._opt_n,
@@ -363,7 +396,8 @@ class LearnerReport:
         No sample learned for ``STALL_WARN_S`` of learning time although the recent
         candidates spread over many novelty distances (not a hovering state).
         """
-        if self._last_added_t is None or self._last_t is None or self._buf is None or \
+        if not self.config.learning or self._last_added_t is None or self._last_t is None or \
+                self._buf is None or \
                 self._last_t - self._last_added_t < self.STALL_WARN_S or \
                 len(self._recent_q) < 10:
             return False

@@ -86,6 +86,8 @@ class JobRunner:
         changed is re-proven without waiting for the re-proof period.
         """
         cfg = self.config
+        if not cfg.learning:
+            return self._freeze_job()           # serve only: nothing else (``switch``)
         if self._buf is None or self._buf.size < cfg.min_samples or self.refit_running():
             return None
         if self._model is not None and self._clock is None:
@@ -151,6 +153,8 @@ class JobRunner:
     def request_refit(self) -> Tuple[bool, str]:
         """Refit now (async: start it in the background). Returns (ok, message)."""
         with self._lock:
+            if not self.config.learning:
+                return False, 'learning is off (parameter learning): the model is frozen'
             if self._buf is None or self._buf.size < self.config.min_samples:
                 n = 0 if self._buf is None else self._buf.size
                 return False, f'not enough samples ({n} < min_samples {self.config.min_samples})'
@@ -163,7 +167,7 @@ class JobRunner:
 
     # ------------------------------------------------------------------ running
     def _start(self, job: RefitJob) -> Tuple[bool, str]:
-        what = (f'{job.kind} started' if job.kind == 'recertify' else
+        what = (f'{job.kind} started' if job.kind != 'fit' else
                 f'refit started on {job.Q.shape[0]} samples '
                 f'({"optimizing" if job.optimize else "fixed"} hyper-parameters)')
         with self._lock:

@@ -41,6 +41,7 @@ from .jobs import JobRunner
 from .selection import Buffer, Selector
 from .snapshot import Snapshot
 from .structure import StructureMixin
+from .switch import LearningSwitch
 from .worker import prove
 
 __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
@@ -53,7 +54,7 @@ STRUCTURAL = ('model', 'passivity', 'prior', 'bias', 'buffer_size', 'buffer_poli
 FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints')
 
 
-class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
+class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, LearnerReport):
     """
     Online learning of a D-GP from a stream of measurements (module docstring).
 
@@ -125,6 +126,7 @@ class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
         # bumped whenever what a snapshot holds changes; increasing across resets
         self._version = getattr(self, '_version', 0) + 1
         self._snap: Optional[Snapshot] = None
+        self._reset_switch()
         if not keep_health:
             self.health = LearnerHealth()
 
@@ -223,7 +225,7 @@ class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
         resumes.
         """
         with self._lock:
-            if self._last_t is None:
+            if self._last_t is None and not self._freeze_wanted:
                 return
             job = self._next_job(self._last_t, idle)
             absorb = job is None and self._absorb_due()
@@ -265,6 +267,9 @@ class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
         buffer keeps it minus the current correction (``structure``).
         """
         h = self.health
+        if not self.config.learning:            # serve only (``switch``)
+            h.samples_not_learned += 1
+            return False
         self._learned_power.append(float(qd @ residual))
         self._recent_q.append(qd)
         if self._selector.outlier(self.config, self._buf, qd, residual):
@@ -344,6 +349,8 @@ class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
             if model is not None and frozen:
                 model = model.snapshot(variance=variance)
             weight, gain, conf = self.skill_gains()
+            if not self.config.learning:
+                weight = None       # a frozen model answers exactly as saved (switch.py)
             self._snap = Snapshot(version=self._version, model=model, prior=mean,
                                   prior_std=std, force_bound=bound, velocity_box=box,
                                   residual_bound=None if self._rmax is None else
@@ -368,7 +375,17 @@ class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
             _inverse_dynamics(config)
 
     def reconfigure(self, config: EstimatorConfig) -> str:
-        """Apply a new validated config; structural changes drop the model and refit."""
+        """
+        Apply a new validated config; structural changes drop the model and refit.
+
+        A change of ``learning`` switches learning off (the model is proven and saved) or on
+        (``switch``).
+        """
+        switched = bool(config.learning) != bool(self.config.learning)
+        what = self._reconfigure(config)
+        return self._switch_note(what, bool(config.learning)) if switched else what
+
+    def _reconfigure(self, config: EstimatorConfig) -> str:
         config = dataclasses.replace(config).validate()
         if self._N is not None:
             config.check_dimension(self._N)
@@ -379,6 +396,8 @@ class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
         with self._lock:
             self.config = config
             self._inverse = inverse
+            if bool(old.learning) != bool(config.learning):
+                self._learning_switched(bool(config.learning))
             changed = [f for f in STRUCTURAL if getattr(old, f) != getattr(config, f)]
             self._version += 1
             if not changed:
@@ -410,7 +429,8 @@ class Learner(StructureMixin, SkillMixin, Absorber, JobRunner, LearnerReport):
             if self._model is None:
                 raise RuntimeError('no trained model to save yet')
             model = copy.deepcopy(self._model)
-        if self._model is not None and (self.unheld or self._history_grew()):
+        if self._model is not None and self.config.learning and \
+                (self.unheld or self._history_grew()):
             with self._lock:
                 self._reselect_now = True
             self._absorb()          # the saved prior and correction see the whole history

@@ -313,7 +313,14 @@ class LearnerProcess:
         self._send('residuals', self._want_residuals)
 
     def learn(self, t: float, qd: np.ndarray, tau: np.ndarray, q=None) -> Tuple[bool, list]:
-        """Hand one sample to the child (never waits); (queued, [])."""
+        """
+        Hand one sample to the child (never waits); (queued, []).
+
+        With learning off only what the residual topic needs is sent (with inverse dynamics,
+        while it has a subscriber): the child would learn nothing from the rest.
+        """
+        if not self.config.learning and not (self.needs_position and self._want_residuals):
+            return False, []
         if self._N is None:
             self._N = qd.size
             lock = self._lock_ring

@@ -53,6 +53,7 @@ class RefitJob:
     kw: Optional[dict] = None   # 'fit': the model's constructor arguments (else the config's)
     correction: object = None   # 'fit': what the targets T exclude (saved with the model)
     target_gen: int = 0
+    full: bool = False          # 'recertify': the full proof (learning stopped; ``switch``)
 
 
 @dataclass
@@ -73,18 +74,22 @@ class RefitResult:
     proof: str = ''
 
 
-def prove(model, passivity: str) -> str:
+def prove(model, passivity: str, full: bool = False) -> str:
     """
     Prove ``model``'s certificate under ``passivity`` where it is stale; '' when it holds.
 
     Otherwise the reason (the model then answers with every estimate projected). Non-certifying
     modes have nothing to prove. This and ``gp``'s own fit are the only places that prove.
+    ``full``: the proof a fit makes, from scratch, unless the certificate holds
+    (``recertify(full=True)``).
     """
     if not policy_class(passivity).certifies:
         return ''
     try:
         cert = model.certificate()
-        if cert.stale:
+        if full:
+            cert = model.recertify(full=True)
+        elif cert.stale:
             cert = model.recertify()
     except Exception as exc:
         return f'certificate failed: {type(exc).__name__}: {exc}'
@@ -142,7 +147,8 @@ def run_job(job: RefitJob, factory: Callable) -> RefitResult:
             ok, why = sane(model, job.Q, job.T)
             if not ok:
                 return RefitResult(job, model, False, why, time.perf_counter() - t0)
-        proof = prove(model, cfg.passivity) if cfg.refit_mode != 'sync' else ''
+        proof = prove(model, cfg.passivity, job.full) if cfg.refit_mode != 'sync' or \
+            job.full else ''
     except Exception as exc:
         return RefitResult(job, None, False, f'{type(exc).__name__}: {exc}',
                            time.perf_counter() - t0)
