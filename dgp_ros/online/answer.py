@@ -91,6 +91,8 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
             tau = None
     if tau is None:
         tau, std, D = _prior(snap, Q, want_damping)
+        if not want_stddev:
+            std = np.full((k, N), np.nan)       # not computed: nobody subscribes
     return _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, health)
 
 
@@ -104,12 +106,14 @@ def _prior(snap: Optional[Snapshot], Q: np.ndarray, want_damping: bool):
         d = np.asarray(snap.prior.diag(Q), float)
         std = np.broadcast_to(snap.prior_std, (k, N)).copy()
     tau = d * Q
-    bad = ~np.all(np.isfinite(tau), axis=1)
-    if np.any(bad):
+    bad = ~np.isfinite(tau).all(axis=1)
+    if bad.any():
         d[bad], tau[bad] = 0.0, 0.0
+    if not want_damping:
+        return tau, std, None
     D = np.zeros((k, N, N))
     D[:, np.arange(N), np.arange(N)] = d
-    return tau, std, D if want_damping else None
+    return tau, std, D
 
 
 def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, health):
@@ -136,7 +140,9 @@ def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, he
     if np.any(bad):
         pt, ps, pD = _prior(snap, Q[bad], want_damping)
         tau, std = tau.copy(), std.copy()
-        tau[bad], std[bad] = pt, np.where(np.isfinite(ps), ps, 0.0)
+        tau[bad] = pt
+        if want_stddev:
+            std[bad] = np.where(np.isfinite(ps), ps, 0.0)
         if D is not None:
             D = D.copy()
             D[bad] = pD if pD is not None else 0.0
