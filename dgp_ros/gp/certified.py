@@ -389,6 +389,7 @@ class CertifiedPolicy(PassivityPolicy):
                 raise ValueError('certified (psd-clip): finalize needs the damping matrix')
             D, _ = psd_clip(D, self._delta(post))
             tau = np.einsum('kij,kj->ki', D, Q)
+            return self._project(Q, tau, D, DQ=tau)
         return self._project(Q, tau, D)
 
     # ---------------------------------------------------------------- persistence

@@ -66,6 +66,10 @@ class AnswerPlan:
         self.mean = p.mean
         # the generic force (diag(m_d) qd) is computed from the diagonal once when D is built
         self.force_is_diag = type(self.mean).force is PriorMean.force
+        # a full model's elements in row-major order: the element weights are G itself
+        N = self.N
+        self.grid = self.E == N * N and np.array_equal(self.rows, np.repeat(np.arange(N), N)) \
+            and np.array_equal(self.cols, np.tile(np.arange(N), N))
 
     def current(self, model) -> bool:
         """Tell whether the plan still describes ``model`` (nothing it caches was replaced)."""
@@ -91,7 +95,10 @@ class AnswerPlan:
         np.maximum(A, EXP_FLOOR, out=A)
         np.exp(A, out=A)
         A *= keep
-        Gf = np.einsum('kne,ne->ke', A, self.V)
+        A *= self.V                                                  # (n, E), each query
+        Gf = A.sum(axis=1)                                          # (k, E)
+        if self.grid:
+            return Gf.reshape(k, self.N, self.N)
         G = np.zeros((k, self.N, self.N))
         G[:, self.rows, self.cols] = Gf
         return G
@@ -116,8 +123,7 @@ class AnswerPlan:
             dg = self.mean.diag(Q)
             C = G * self.dscale
             D = C if w is None else w[:, None, None] * C
-            idx = np.arange(self.N)
-            D[:, idx, idx] += dg
+            D.reshape(len(D), -1)[:, ::self.N + 1] += dg        # the diagonal, in place
         if D is not None and pol.needs_damping:
             tau = np.einsum('kij,kj->ki', D, Q)
         else:
