@@ -217,6 +217,53 @@ def test_bad_messages_rejected_and_reported(rig):
     assert len(rig.got['force']) == 1
 
 
+def test_bytes_the_codec_cannot_read_are_answered_by_rclpy_or_rejected(rig):
+    """The raw path: garbage is rejected (``undecodable``), big-endian CDR answered by rclpy."""
+    from rclpy.serialization import serialize_message
+    est = rig.start_estimator(FAST)
+    feed(rig, 3)
+    good = serialize_message(state_msg(0.5, traj(0.5), true_tau(traj(0.5))))
+    big = _big_endian(state_msg(0.6, traj(0.6), true_tau(traj(0.6))))
+    for raw in (b'\x00\x01\x00\x00' + b'\xff' * 9, good[:30], big, b'', good):
+        rig.pub.publish(raw)
+    rig.spin_until(lambda: len(rig.got['force']) >= 5, 10)
+    h = est.estimator.health
+    assert rig.spin_until(lambda: h.messages_received >= 8, 10)
+    stamps = sorted(m.header.stamp.nanosec for m in rig.got['force'][3:])
+    assert stamps == [500_000_000, 600_000_000]            # the good one and the big-endian one
+    assert h.rejected['undecodable'] >= 2 and est.path.fallback >= 3
+    f = [m for m in rig.got['force'] if m.header.stamp.nanosec == 600_000_000][0]
+    np.testing.assert_array_equal(f.velocity, traj(0.6))
+
+
+def _big_endian(m) -> bytes:
+    """``m`` as big-endian CDR (what a big-endian host sends; rclpy reads it, the codec not)."""
+    import struct
+    out = bytearray(b'\x00\x00\x00\x00')
+
+    def align(n):
+        out.extend(b'\x00' * (-(len(out) - 4) % n))
+
+    def string(s):
+        b = s.encode() + b'\x00'
+        align(4)
+        out.extend(struct.pack('>I', len(b)) + b)
+    align(4)
+    out.extend(struct.pack('>iI', m.header.stamp.sec, m.header.stamp.nanosec))
+    string(m.header.frame_id)
+    align(4)
+    out.extend(struct.pack('>I', len(m.name)))
+    for n in m.name:
+        string(n)
+    for arr in (m.position, m.velocity, m.effort):
+        align(4)
+        out.extend(struct.pack('>I', len(arr)))
+        if len(arr):
+            align(8)
+            out.extend(struct.pack(f'>{len(arr)}d', *arr))
+    return bytes(out)
+
+
 def test_refit_is_answered_while_the_learner_is_busy(rig):
     """A learner that does not reply in ``REFIT_REPLY_S``: ~/refit says the request is queued."""
     est = rig.start_estimator(FAST)
