@@ -73,7 +73,7 @@ class OnlineEstimator(ArrayPath):
             from .process import LearnerProcess
             # a new snapshot's answer plan is built in the receiver thread, before the swap
             self._learner = LearnerProcess(
-                self.config, prepare=lambda snap: self._plans.prepare(snap.model))
+                self.config, prepare=lambda snap: self._plans.prepare(snap.model, snap.plan))
         else:
             self._learner = Learner(self.config, model_factory, model_loader)
         self._init_state()

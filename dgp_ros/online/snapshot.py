@@ -35,6 +35,9 @@ class Snapshot:
     learned_through : learning time of the newest sample the learner had seen (s), or None.
     frozen : a self-contained copy (another process); variance : the posterior variance is
         available.
+    plan : (``plan.AnswerPlan`` or None, usable) of ``model``, built where the snapshot was
+        taken (a learner process builds and checks it, so that the node only unpickles it), or
+        None: the message path builds it.
     """
 
     version: int
@@ -47,6 +50,7 @@ class Snapshot:
     variance: bool = True
     velocity_box: Optional[tuple] = None
     residual_bound: Optional[np.ndarray] = None
+    plan: Optional[tuple] = None
 
 
 class SwapLog:
