@@ -6,9 +6,9 @@ resolved, imports inside functions included; an ``importlib`` call by a name com
 time is not an import and is not seen):
 
 * the layers below the nodes import no ROS: no module of ``dgp_ros/gp``, ``dynamics``,
-  ``online`` or ``bags`` (nor ``messages.py``, ``cdr.py``) imports rclpy or a ROS interface package (``rosidl*``, ``*_msgs``,
-  ``*_srvs``, ...), except ``bags/ros.py`` and ``bags/cli.py`` (the rclpy player and recorder,
-  and their command line);
+  ``online`` or ``bags`` (nor ``messages.py``, ``cdr.py``) imports rclpy or a ROS interface
+  package (``rosidl*``, ``*_msgs``, ``*_srvs``, ...), except ``bags/ros.py`` and
+  ``bags/cli.py`` (the rclpy player and recorder, and their command line);
 * the GP numerics stand alone: ``dgp_ros/gp`` imports nothing from the rest of the package;
 * no import circles among the modules of ``dgp_ros`` and ``sim_bridge``: no strongly connected
   component of the import graph has two modules or more.
