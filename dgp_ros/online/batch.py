@@ -106,13 +106,16 @@ def validate(est, sec: np.ndarray, nsec: np.ndarray, names: tuple, velocity: np.
     if est._learner.needs_position:
         p = position if idx is None else position.take(idx, axis=1)
     cfg = est.config
-    # finite and in range at once (NaN and inf compare False): one pass in the usual case
+    # the usual case, for the whole batch at once: every value finite and in range (the largest
+    # magnitude is NaN if any is, and NaN compares False), every stamp after the epoch
+    if np.abs(velocity).max() <= cfg.max_abs_velocity and \
+            np.abs(effort).max() <= cfg.max_abs_effort and sec.min() >= 0 and \
+            (p is None or np.isfinite(p).all()):
+        return None, stamps, (velocity, effort, p)
     fine = (np.abs(velocity) <= cfg.max_abs_velocity).all(axis=1) & \
         (np.abs(effort) <= cfg.max_abs_effort).all(axis=1)
     if p is not None:
         fine &= np.isfinite(p).all(axis=1)
-    if fine.all() and sec.min() >= 0:
-        return None, stamps, (velocity, effort, p)
     finite = np.isfinite(velocity).all(axis=1) & np.isfinite(effort).all(axis=1)
     if p is not None:
         finite &= np.isfinite(p).all(axis=1)
@@ -143,8 +146,11 @@ def _content(est, names: tuple, position):
         est._order = (names, idx)
     if idx.size != est._N:
         return 'dimension_mismatch'
-    # None: the messages' order is the estimator's (no reordering)
-    return None if idx.size == len(names) and (idx == np.arange(idx.size)).all() else idx
+    cached = est._order
+    if len(cached) < 3:             # None: the messages' order is the estimator's (as they are)
+        same = idx.size == len(names) and bool((idx == np.arange(idx.size)).all())
+        cached = est._order = cached[:2] + (None if same else idx,)
+    return cached[2]
 
 
 class ArrayPath:

@@ -101,13 +101,14 @@ class SampleRing:
             backlog.extend(np.array(rows[:room], dtype=np.float64))
             return room
         try:
-            w, r = self._write_backlog(), int(self._hdr[1])
-            kept = max(0, min(len(rows), self.capacity - (w - r)))
+            hdr = self._hdr
+            w = self._write_backlog() if backlog else int(hdr[0])
+            kept = max(0, min(len(rows), self.capacity - (w - int(hdr[1]))))
             if kept == 1:
                 self._data[w % self.capacity] = rows[0]
             elif kept:
                 self._data[(w + np.arange(kept)) % self.capacity] = rows[:kept]
-            self._hdr[0] = w + kept
+            hdr[0] = w + kept
         finally:
             self._lock.release()
         return kept
