@@ -129,9 +129,12 @@ class CertifiedPolicy(PassivityPolicy):
         return out
 
     def _delta(self, post) -> float:
-        """Smoothing width of the eigenvalue floor, damping units."""
+        """Smoothing width of the eigenvalue floor, damping units (kept per hyper-parameters)."""
         hp = post.hyper
-        return self.PSD_DELTA * float(np.max(hp.sy / hp.sx))
+        last = self.__dict__.get('_delta_of')
+        if last is None or last[0] is not hp:
+            last = self._delta_of = (hp, self.PSD_DELTA * float(np.max(hp.sy / hp.sx)))
+        return last[1]
 
     # ---------------------------------------------------------------- life cycle
     def enforce(self, post, prove: bool = True):

@@ -123,7 +123,7 @@ class AnswerPlan:
             dg = self.mean.diag(Q)
             C = G * self.dscale
             D = C if w is None else w[:, None, None] * C
-            D.reshape(len(D), -1)[:, ::self.N + 1] += dg        # the diagonal, in place
+            D.reshape(len(D), self.N * self.N)[:, ::self.N + 1] += dg     # the diagonal
         if D is not None and pol.needs_damping:
             tau = np.einsum('kij,kj->ki', D, Q)
         else:
