@@ -242,7 +242,10 @@ class EstimatorNode(Node):
         c = self._cpu
         if c['thread0'] is None:
             c['thread0'], c['proc0'] = t0, _process_cpu_ns()
-        now = self.get_clock().now().nanoseconds
+        clock = self.get_clock()
+        # the node's clock: the wall clock unless simulated time runs (use_sim_time)
+        now = clock.now().nanoseconds if getattr(clock, 'ros_time_is_active', True) \
+            else time.time_ns()
         self._last_msg_time = now
         self.path.answer(raws, now)
         c['msgs'] += len(raws)

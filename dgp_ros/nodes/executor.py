@@ -76,8 +76,10 @@ class WaitSetExecutor:
     and future machinery: callbacks are plain functions, called in this thread. Each wake-up,
     in this order:
 
-    1. services (every request waiting), timers, guard conditions and clients, so that they
-       are answered within one batch of messages even under a flood; QoS event waitables (the
+    1. services (every request waiting), timers, guard conditions and clients, at most
+       ``FULL_PERIOD_S`` after they became ready even under a flood: a wake-up within that time
+       of the last full round waits for messages (and this executor's guard) only, which at
+       1 kHz spares most of the wait set's cost per message; QoS event waitables (the
        default "incompatible QoS" handlers of every publisher, a subscription's message-lost
        event) at most every ``EVENT_PERIOD_S``: each costs a few us of Python per wake-up;
     2. the messages: a subscription with a batch handler (``set_batch_handler``) gets every
@@ -97,6 +99,8 @@ class WaitSetExecutor:
 
     #: longest a QoS event waits to be served (s)
     EVENT_PERIOD_S = 0.1
+    #: longest a service, timer or client waits for its turn while messages keep coming (s)
+    FULL_PERIOD_S = 0.005
 
     def __init__(self, *, context=None):
         from rclpy.utilities import get_default_context
@@ -209,6 +213,9 @@ class WaitSetExecutor:
         self._timers, self._services = found['timers'], found['services']
         self._clients, self._guards, self._waitables = (found['clients'], found['guards'],
                                                         found['waits'])
+        # between full rounds (at most every FULL_PERIOD_S) a wake-up waits for messages only
+        self._ws_msgs = _rclpy.WaitSet(len(found['subs']), 1, 0, 0, 0, 0, self._context.handle)
+        self._full_due = 0.0
         ws = self._ws
         self._adds = [(ws.add_subscription, [s.handle for s, _, _ in self._subs]),
                       (ws.add_timer, [t.handle for t in self._timers]),
@@ -245,6 +252,11 @@ class WaitSetExecutor:
             self._rebuild()
         if self._outbox:
             self._flush_outbox()
+        now = time.monotonic()
+        if now < self._full_due and self._subs:
+            self._messages_only(timeout_sec, self._full_due - now)
+            return
+        self._full_due = now + self.FULL_PERIOD_S
         ws = self._ws
         ws.clear_entities()
         for add, handles in self._adds:
@@ -293,6 +305,26 @@ class WaitSetExecutor:
             self._flush_outbox()        # what a timer or a reply just answered: before a batch
         for p in ready('subscription'):
             s, batch, message_only = by_ptr['subscription'][p]
+            if batch is None:
+                self._take_one(s, message_only)
+            else:
+                self._take_batch(s, *batch)
+
+    def _messages_only(self, timeout_sec: Optional[float], left: float) -> None:
+        """Wait (at most until the next full round) for messages and this executor's guard."""
+        ws = self._ws_msgs
+        ws.clear_entities()
+        for s, _, _ in self._subs:
+            ws.add_subscription(s.handle)
+        ws.add_guard_condition(self._guard.handle)
+        timeout = left if timeout_sec is None or timeout_sec < 0 else \
+            min(float(timeout_sec), left)
+        ws.wait(int(timeout * 1e9))
+        if self._dirty:
+            return
+        by_ptr = self._by_ptr['subscription']
+        for p in ws.get_ready_entities('subscription'):
+            s, batch, message_only = by_ptr[p]
             if batch is None:
                 self._take_one(s, message_only)
             else:

@@ -107,7 +107,8 @@ class JointOutput:
 
     def update(self) -> None:
         """Note whether anybody subscribes (a publish without subscribers still costs)."""
-        self.wanted = self.always or subscribers(self.pub) > 0
+        if not self.always:
+            self.wanted = subscribers(self.pub) > 0
 
     def publish(self, writer: JointStateWriter, headers: Sequence[bytes], answers) -> None:
         if not self.wanted:

@@ -130,12 +130,13 @@ def validate(est, sec: np.ndarray, nsec: np.ndarray, names: tuple, velocity: np.
 
 def _content(est, names: tuple, position):
     """Return the reason every message is rejected for, or the joint order (None: as is)."""
-    if len(set(names)) != len(names):
+    cached = est._order
+    known = cached is not None and cached[0] == names       # (their names had no duplicate)
+    if not known and len(set(names)) != len(names):
         return 'duplicate_name'
     if est._learner.needs_position and position is None:
         return 'missing_position'
-    cached = est._order
-    if cached is not None and cached[0] == names:
+    if known:
         idx = cached[1]
     else:
         pos = {n: i for i, n in enumerate(names)}
