@@ -229,7 +229,7 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
         ros += ['-p', f'{k}:={v}']
     est_log = open(f('estimator.log'), 'w')
     if sc.node == 'relay':
-        est = start('relay', ['relay'], est_log)
+        est = start('relay', ['relay', '--cpu-out', f('est_cpu.json')], est_log)
     else:
         est = start('estimator', ['estimator', '--cpu-out', f('est_cpu.json')] + ros, est_log)
     watch.track('estimator', est.pid)

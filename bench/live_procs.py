@@ -50,6 +50,24 @@ def _stop_event():
     return stop
 
 
+def thread_cpu() -> dict:
+    """CPU seconds of each thread of this process so far, by thread name (summed per name)."""
+    out: dict = {}
+    clk = os.sysconf('SC_CLK_TCK')
+    for tid in os.listdir('/proc/self/task'):
+        try:
+            with open(f'/proc/self/task/{tid}/stat') as f:
+                s = f.read()
+        except OSError:
+            continue
+        name = s[s.find('(') + 1:s.rfind(')')]
+        if int(tid) == os.getpid():
+            name = 'main'
+        rest = s[s.rfind(')') + 2:].split()
+        out[name] = out.get(name, 0.0) + (int(rest[11]) + int(rest[12])) / clk
+    return out
+
+
 def _write_json(path: str, obj) -> None:
     tmp = path + '.tmp'
     with open(tmp, 'w') as f:
@@ -158,49 +176,6 @@ def real_stream(path: str, seconds: float):
                 return
             yield ti, q[i], qd[i], r[i]
         k += 1
-
-
-# ----------------------------------------------------------------------------- relay
-def relay(a) -> None:
-    """
-    Answer each JointState with a JointState from a bare rclpy node: the floor.
-
-    Subscribes like the estimator (best effort, depth 1000), publishes on its answer topic (depth
-    1024, as the estimator) header, names, velocity and effort of each measurement, spun by rclpy's
-    own SingleThreadedExecutor: what any rclpy node pays per message, with nothing of ours
-    (``DGP_EXECUTOR=waitset``: the node's wait-set loop instead).
-    """
-    stop = _stop_event()
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
-    from sensor_msgs.msg import JointState
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('dgp_estimator', context=ctx)
-    pub = node.create_publisher(JointState, '~/damping_force', 1024)
-
-    def on_state(m):
-        out = JointState()
-        out.header = m.header
-        out.name = m.name
-        out.velocity = m.velocity
-        out.effort = m.effort
-        pub.publish(out)
-    node.create_subscription(JointState, TOPIC_IN, on_state,
-                             QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT))
-    if os.environ.get('DGP_EXECUTOR') == 'waitset':      # the node's own loop instead
-        from dgp_ros.nodes.executor import WaitSetExecutor
-        ex = WaitSetExecutor(context=ctx)
-    else:
-        ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    while not stop.is_set():
-        ex.spin_once(timeout_sec=0.1)
-    ex.shutdown()
-    node.destroy_node()
-    ctx.try_shutdown()
 
 
 # ----------------------------------------------------------------------------- listener
@@ -315,6 +290,7 @@ def estimator(a, ros_args) -> int:
         from dgp_ros import estimator_node as E
     st = {'cb_ns': 0, 'calls': 0, 'depth': 0, 'node': None, 'main0': None, 'proc0': None,
           'main1': 0, 'proc1': 0.0}
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
     def proc_s():
         t = os.times()
@@ -328,15 +304,32 @@ def estimator(a, ros_args) -> int:
             t0 = time.thread_time_ns()
             if st['main0'] is None:
                 st['main0'], st['proc0'] = t0, proc_s()
+                st['threads0'] = thread_cpu()
             try:
                 return fn(*args, **kw)
             finally:
-                t1 = time.thread_time_ns()
-                st['cb_ns'] += t1 - t0
+                st['cb_ns'] += time.thread_time_ns() - t0
                 st['calls'] += 1
                 st['depth'] -= 1
-                st['main1'], st['proc1'] = t1, proc_s()
         return wrapper
+
+    profiled = os.environ.get('DGP_PATH_PROFILE', '') == '1'
+    if profiled:                    # the path's stages, thread CPU (bench/path_profile.py)
+        import path_profile
+        path_profile.install()
+    shutdown = E.EstimatorNode.shutdown
+
+    def at_shutdown(self):
+        # the end of the stream: before the model is saved and the threads end
+        st['main1'], st['proc1'] = time.thread_time_ns(), proc_s()
+        th0, th1 = st.get('threads0') or {}, thread_cpu()
+        st['threads'] = {k: v - th0.get(k, 0.0) for k, v in th1.items()}
+        if profiled and st['main0'] is not None:
+            n = int(self.estimator.health.messages_received) or 1
+            st['profile'] = path_profile.report((st['main1'] - st['main0']) * 1e-9, n,
+                                                st['threads'])
+        return shutdown(self)
+    E.EstimatorNode.shutdown = at_shutdown
 
     for name in ('_on_state', '_on_states'):
         if hasattr(E.EstimatorNode, name):
@@ -397,7 +390,14 @@ def estimator(a, ros_args) -> int:
         init(self, *args, **kw)
         st['node'] = self
     E.EstimatorNode.__init__ = keep
-    code = E.main(['estimator'] + ros_args)
+    prof_path = os.environ.get('DGP_CPROFILE', '')
+    if prof_path:                   # a deterministic profile of the main thread
+        import cProfile
+        prof = cProfile.Profile(time.thread_time_ns, 1e-9)     # CPU, not wall
+        code = prof.runcall(E.main, ['estimator'] + ros_args)
+        prof.dump_stats(prof_path)
+    else:
+        code = E.main(['estimator'] + ros_args)
     node = st['node']
     received = None
     if node is not None:
@@ -412,7 +412,8 @@ def estimator(a, ros_args) -> int:
                             'received': received,
                             'executor': os.environ.get('DGP_EXECUTOR', ''),
                             'slow_callbacks': slow[-200:], 'gc_pauses': gcs[-200:],
-                            'diag_times': diag_t, 'swaps': swaps[-5000:]})
+                            'diag_times': diag_t, 'swaps': swaps[-5000:],
+                            'threads': st.get('threads', {}), 'profile': st.get('profile')})
     return code
 
 
@@ -450,6 +451,7 @@ def main() -> int:
     elif a.role == 'estimator':
         return estimator(a, ros)
     elif a.role == 'relay':
+        from live_relay import relay
         relay(a)
     else:
         hog(a)

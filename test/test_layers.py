@@ -6,9 +6,9 @@ resolved, imports inside functions included; an ``importlib`` call by a name com
 time is not an import and is not seen):
 
 * the layers below the nodes import no ROS: no module of ``dgp_ros/gp``, ``dynamics``,
-  ``online`` or ``bags`` imports rclpy or a ROS interface package (``rosidl*``, ``*_msgs``,
-  ``*_srvs``, ...), except ``bags/ros.py`` and ``bags/cli.py`` (the rclpy player and recorder,
-  and their command line);
+  ``online`` or ``bags`` (nor ``messages.py``, ``cdr.py``) imports rclpy or a ROS interface
+  package (``rosidl*``, ``*_msgs``, ``*_srvs``, ...), except ``bags/ros.py`` and
+  ``bags/cli.py`` (the rclpy player and recorder, and their command line);
 * the GP numerics stand alone: ``dgp_ros/gp`` imports nothing from the rest of the package;
 * no import circles among the modules of ``dgp_ros`` and ``sim_bridge``: no strongly connected
   component of the import graph has two modules or more.
@@ -21,8 +21,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ('dgp_ros', 'sim_bridge')
-#: the layers that must import no ROS, and the modules of them that may (rclpy on purpose)
-NO_ROS = ('dgp_ros/gp', 'dgp_ros/dynamics', 'dgp_ros/online', 'dgp_ros/bags')
+#: the layers that must import no ROS (folders, or single modules: the message converter and
+#: the CDR codec under the nodes), and the modules of them that may (rclpy on purpose)
+NO_ROS = ('dgp_ros/gp', 'dgp_ros/dynamics', 'dgp_ros/online', 'dgp_ros/bags',
+          'dgp_ros/messages.py', 'dgp_ros/cdr.py')
 ROS_ALLOWED = ('dgp_ros/bags/ros.py', 'dgp_ros/bags/cli.py')
 #: ROS packages by exact top-level name; and by prefix or suffix of it
 ROS_NAMES = ('rclpy', 'launch_ros', 'ament_index_python', 'message_filters', 'tf2_ros')
@@ -81,7 +83,8 @@ def ros_imports(root: Path, layers=NO_ROS, allowed=ROS_ALLOWED) -> dict:
     """Return ``{path: [ROS modules]}`` of the modules under ``layers`` that import ROS."""
     bad = {}
     for layer in layers:
-        for p in sorted((root / layer).rglob('*.py')):
+        where = root / layer
+        for p in [where] if where.suffix == '.py' else sorted(where.rglob('*.py')):
             rel = p.relative_to(root).as_posix()
             if rel in allowed:
                 continue
@@ -194,6 +197,9 @@ def test_imports_are_read_anywhere_and_resolved(tmp_path):
 def test_the_ros_check_finds_a_planted_rclpy_import(tmp_path):
     root = _planted(tmp_path)
     assert ros_imports(root, ('pkg/dyn', 'pkg/gp'), ('pkg/dyn/allowed.py',)) == {
+        'pkg/dyn/model.py': ['rclpy.node', 'sensor_msgs.msg', 'sensor_msgs.msg.JointState']}
+    # a single module as a layer
+    assert ros_imports(root, ('pkg/dyn/model.py', 'pkg/a.py'), ()) == {
         'pkg/dyn/model.py': ['rclpy.node', 'sensor_msgs.msg', 'sensor_msgs.msg.JointState']}
     assert is_ros('rosidl_runtime_py') and is_ros('std_srvs.srv') and not is_ros('rosbags')
 

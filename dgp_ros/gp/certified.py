@@ -129,9 +129,12 @@ class CertifiedPolicy(PassivityPolicy):
         return out
 
     def _delta(self, post) -> float:
-        """Smoothing width of the eigenvalue floor, damping units."""
+        """Smoothing width of the eigenvalue floor, damping units (kept per hyper-parameters)."""
         hp = post.hyper
-        return self.PSD_DELTA * float(np.max(hp.sy / hp.sx))
+        last = self.__dict__.get('_delta_of')
+        if last is None or last[0] is not hp:
+            last = self._delta_of = (hp, self.PSD_DELTA * float(np.max(hp.sy / hp.sx)))
+        return last[1]
 
     # ---------------------------------------------------------------- life cycle
     def enforce(self, post, prove: bool = True):
@@ -400,6 +403,7 @@ class CertifiedPolicy(PassivityPolicy):
                 raise ValueError('certified (psd-clip): finalize needs the damping matrix')
             D, _ = psd_clip(D, self._delta(post))
             tau = np.einsum('kij,kj->ki', D, Q)
+            return self._project(Q, tau, D, DQ=tau)
         return self._project(Q, tau, D)
 
     # ---------------------------------------------------------------- persistence

@@ -149,6 +149,11 @@ class ViscousMean(PriorMean):
 def _tanh_over(v: np.ndarray, eps: np.ndarray) -> np.ndarray:
     """``tanh(v / eps) / v``, continuous at 0 (``1 / eps``); even, decreasing in ``|v|``."""
     a = np.abs(v)
+    limit = 1e-6 * np.max(eps) if np.size(eps) else 0.0
+    if limit > 0.0 and a.size and a.min() >= limit:
+        # no speed is small (the usual case, every answer of the message path): the same
+        # numbers as below, without the masks
+        return np.tanh(a / eps) / a
     small = a < 1e-6 * eps
     with np.errstate(invalid='ignore', divide='ignore'):
         out = np.tanh(a / eps) / np.where(small, 1.0, a)
@@ -174,12 +179,12 @@ def _friction_diag(a: np.ndarray, coef: np.ndarray, eps: np.ndarray,
         return out
     T = _tanh_over(a[..., None], eps)                                 # (..., N, K + 1)
     for k in range(K):
-        out = out + coef[:, 1 + k] * T[..., k]
+        out += coef[:, 1 + k] * T[..., k]
     if S:
         t = T[..., K]
         G = np.exp(-(a[..., None] / vs) ** 2)                           # (..., N, S)
         for s in range(S):
-            out = out + coef[:, 1 + K + s] * t * G[..., s]
+            out += coef[:, 1 + K + s] * t * G[..., s]
     return out
 
 
@@ -333,7 +338,11 @@ class BasisFrictionMean(_SpeedDiag):
 
     def _diag_at(self, a: np.ndarray) -> np.ndarray:
         """``m_d`` at speeds ``a = |v|`` (..., N): the shared eps and vs of every joint."""
-        return _friction_diag(a, self.coef, np.append(self.eps, self.eps_s), self.vs)
+        key = (self.eps, self.eps_s)
+        cached = self.__dict__.get('_eps_all')
+        if cached is None or cached[0][0] is not key[0] or cached[0][1] != key[1]:
+            cached = self._eps_all = (key, np.append(self.eps, self.eps_s))
+        return _friction_diag(a, self.coef, cached[1], self.vs)
 
     def diag_ref(self):
         scale = 10.0 * (float(self.eps.max()) if self.eps.size else 1.0)

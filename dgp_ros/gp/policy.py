@@ -233,16 +233,24 @@ class PassivityPolicy:
     def load_state(self, meta: dict, arrays: dict, post) -> None:
         """Inverse of ``state``; validates shapes against ``post``."""
 
-    def _project(self, Q, tau, D):
+    def _project(self, Q, tau, D, DQ=None):
         """
         Project each estimate onto ``q^T tau >= 0`` (``projected``'s finalize).
 
         The ``W``-norm projection of the force and the matching ``D + lambda W^-1``; a no-op (up
-        to a few ulps) where the power is already non-negative.
+        to a few ulps) where the power is already non-negative. ``DQ``: ``D q`` per row when the
+        caller has it (the same ``einsum``); ``tau`` itself then (every answer of the message
+        path): one power per answer decides that nothing moves.
         """
         w_inv = self.options.projection_weights
+        if D is None or DQ is tau:
+            # the usual case: every power >= 0, so lambda = 0 (D unchanged) and the force is
+            # returned as it is (what projection_lambda and project_passive would find)
+            if (np.einsum('ij,ij->i', Q, tau) >= 0.0).all():
+                return tau.copy(), D
         if D is not None:
-            lam = projection_lambda(Q, np.einsum('kij,kj->ki', D, Q), w_inv)
+            DQ = np.einsum('kij,kj->ki', D, Q) if DQ is None else DQ
+            lam = projection_lambda(Q, DQ, w_inv)
             if np.any(lam > 0):
                 wi = np.ones(Q.shape[1]) if w_inv is None else w_inv
                 D = D + lam[:, None, None] * np.diag(wi)[None]

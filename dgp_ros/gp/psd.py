@@ -54,14 +54,17 @@ def psd_clip(D: np.ndarray, delta: float):
     need = low < delta
     if not need.any():
         return D, need
-    cand = np.flatnonzero(need)
-    lam, V = np.linalg.eigh(S[cand])
+    every = bool(need.all())            # (one answer of the message path: no gathering)
+    cand = None if every else np.flatnonzero(need)
+    lam, V = np.linalg.eigh(S if every else S[cand])
     g = smooth_floor(lam, delta)
     hit = g.max(axis=1) > 0.0
+    if every and hit.all():
+        return D + (V * g[:, None, :]) @ V.transpose(0, 2, 1), hit
     touched = np.zeros(D.shape[0], dtype=bool)
     if not hit.any():
         return D, touched
-    rows = cand[hit]
+    rows = np.flatnonzero(hit) if every else cand[hit]
     out = D.copy()
     Vh = V[hit]
     out[rows] += (Vh * g[hit][:, None, :]) @ Vh.transpose(0, 2, 1)

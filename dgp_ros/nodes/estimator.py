@@ -31,7 +31,6 @@ process exits 0 (``nodes.runtime``).
 """
 from __future__ import annotations
 
-from collections import deque
 import dataclasses
 import os
 import sys
@@ -48,17 +47,15 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from dgp_ros.messages import joint_state_sample
+from dgp_ros.nodes.answers import MessagePath
 from dgp_ros.nodes.executor import DeferredResponse, WaitSetExecutor
-from dgp_ros.nodes.outputs import damping_matrix_msg, joint_state, Reused
+from dgp_ros.nodes.outputs import joint_state
 from dgp_ros.nodes.runtime import (check_unknown_overrides, declare_parameters, help_text,
                                    reject_unknown, run, set_batch_handler)
 from dgp_ros.online import ERROR, EstimatorConfig, OK, OnlineEstimator, WARN
 from dgp_ros.online.config import NODE_PARAMS, PARAMS
 
 NODE_NAME = 'dgp_estimator'
-#: stamp -> answer ages beyond this are stamps of another clock (a replayed bag): not latency
-AGE_PLAUSIBLE_S = 60.0
 _CONFIG_FIELDS = {f.name for f in dataclasses.fields(EstimatorConfig)}
 
 
@@ -128,13 +125,7 @@ class EstimatorNode(Node):
                                    'urdf_file: waiting for the URDF on /robot_description')
         self._service_lock = threading.Lock()    # ~/save_model and ~/reset, one at a time
         self._last_msg_time = None
-        self._age = deque(maxlen=1000)        # stamp -> answer, node clock (s)
-        self._out = {k: Reused() for k in ('force', 'std', 'D', 'conf')}
-        self._power = Float64()
-        self._want_power = True
-        self._want_corr = False
-        self._want_conf = False
-        self._names_out: tuple = ((), [])     # (estimate's names, the list the messages carry)
+        self.path = MessagePath(self)         # raw messages in, answers out (nodes.answers)
         # CPU of the message path: this thread's CPU in the message callbacks, against its
         # whole CPU and the process's since the first message (/diagnostics)
         self._cpu = {'msgs': 0, 'cb_ns': 0, 'thread0': None, 'proc0': None}
@@ -156,25 +147,12 @@ class EstimatorNode(Node):
             message_lost=lambda info: self.estimator.note_lost(info.total_count_change))
         try:
             return self.create_subscription(JointState, 'generalized_state', self._on_state,
-                                            qos, event_callbacks=events)
+                                            qos, event_callbacks=events, raw=True)
         except UnsupportedEventTypeError:
             self.get_logger().info('the middleware reports no lost messages: they are '
                                    'estimated from stamp gaps')
             return self.create_subscription(JointState, 'generalized_state', self._on_state,
-                                            qos)
-
-    def _update_outputs(self) -> None:
-        # the standard deviation and the damping matrix cost about 60 % of a 7-joint answer:
-        # computed only while someone subscribes (and the residuals only sent back then)
-        self.estimator.set_outputs(
-            stddev=self.pub_std.get_subscription_count() > 0,
-            damping=(self.pub_D.get_subscription_count() +
-                     self.pub_D_stamped.get_subscription_count()) > 0,
-            residuals=self.pub_residual.get_subscription_count() > 0)
-        # a publish without subscribers still serializes the message (7 to 13 us)
-        self._want_power = self.pub_power.get_subscription_count() > 0
-        self._want_corr = self.pub_corr.get_subscription_count() > 0
-        self._want_conf = self.pub_conf.get_subscription_count() > 0
+                                            qos, raw=True)
 
     def _on_robot_description(self, msg: String) -> None:
         """Build the rigid-body model from a URDF on /robot_description (again on a new one)."""
@@ -237,7 +215,7 @@ class EstimatorNode(Node):
             self.get_logger().info(f'parameters {sorted(names)}: {what}')
 
     # -------------------------------------------------------------- topics
-    def _take_waiting(self, first: JointState) -> List[JointState]:
+    def _take_waiting(self, first: bytes) -> List[bytes]:
         """``first`` and every message already waiting in the subscription (at most MAX_BATCH)."""
         msgs = [first]
         sub = self.sub
@@ -252,77 +230,30 @@ class EstimatorNode(Node):
             pass
         return msgs
 
-    def _on_state(self, msg: JointState) -> None:
+    def _on_state(self, raw: bytes) -> None:
         """Answer one message and every one waiting behind it (rclpy's executors)."""
-        self._on_states(self._take_waiting(msg), None)
+        self._on_states(self._take_waiting(raw), None)
 
-    def _on_states(self, msgs: List[JointState], infos=None) -> None:
+    def _on_states(self, raws: List[bytes], infos=None) -> None:
         """
-        Answer messages together: one vectorized prediction for k queries.
+        Answer serialized messages together: one vectorized prediction for k queries.
 
         The wait-set executor hands over every message waiting (at most ``MAX_BATCH``) with their
-        message infos.
+        message infos. The codec reads them into arrays; a run of like messages is answered as
+        one batch (``OnlineEstimator.process_arrays``), anything else message by message.
         """
         t0 = time.thread_time_ns()
         c = self._cpu
         if c['thread0'] is None:
             c['thread0'], c['proc0'] = t0, _process_cpu_ns()
-        now = self.get_clock().now()
+        clock = self.get_clock()
+        # the node's clock: the wall clock unless simulated time runs (use_sim_time)
+        now = clock.now().nanoseconds if getattr(clock, 'ros_time_is_active', True) \
+            else time.time_ns()
         self._last_msg_time = now
-        self._update_outputs()       # < 1 us per publisher: no answer misses a new subscriber
-        batch = []
-        for m in msgs:
-            s = joint_state_sample(m)
-            batch.append((s.stamp_s, s.names, s.velocity, s.effort, s.position))
-        for m, est in zip(msgs, self.estimator.process_batch(batch)):
-            if est is not None:
-                self._publish(m, est, now)
-        c['msgs'] += len(msgs)
+        self.path.answer(raws, now)
+        c['msgs'] += len(raws)
         c['cb_ns'] += time.thread_time_ns() - t0
-
-    def _names_of(self, est, msg) -> list:
-        names = est.names if est.names else msg.name
-        if list(names) != self._names_out[1]:
-            self._names_out = (names, list(names))
-        return self._names_out[1]
-
-    def _publish(self, msg: JointState, est, now) -> None:
-        """Publish the answer to ``msg`` on every output topic."""
-        names = self._names_of(est, msg)
-        hdr = msg.header
-        out = self._out
-        if self._want_corr:         # before the force: a controller acting on the force has both
-            self._publish_correction(msg, hdr, names)
-        if self._want_conf and est.confidence is not None:
-            self.pub_conf.publish(out['conf'].fill(hdr, names, est.qd, est.confidence))
-        self.pub_force.publish(out['force'].fill(hdr, names, est.qd, est.tau_hat))
-        if np.all(np.isfinite(est.stddev)):         # NaN: nobody subscribed (not computed)
-            self.pub_std.publish(out['std'].fill(hdr, names, est.qd, est.stddev))
-        if est.D is not None:
-            self.pub_D_stamped.publish(out['D'].fill(hdr, names, est.qd, est.D.ravel()))
-            self.pub_D.publish(damping_matrix_msg(est.D))
-        if self._want_power:
-            self._power.data = float(est.power)
-            self.pub_power.publish(self._power)
-        for r in est.residuals:
-            h = type(hdr)()
-            h.frame_id = hdr.frame_id
-            h.stamp.sec = int(r.stamp_s // 1)
-            h.stamp.nanosec = min(int(round((r.stamp_s % 1) * 1e9)), 999_999_999)
-            self.pub_residual.publish(joint_state(h, names, r.q, r.qd, r.residual))
-        age = (now.nanoseconds - (hdr.stamp.sec * 10 ** 9 + hdr.stamp.nanosec)) * 1e-9
-        if abs(age) < AGE_PLAUSIBLE_S:       # stamps on this clock (not a bag's own time base)
-            self._age.append(age)
-
-    def _publish_correction(self, msg: JointState, hdr, names) -> None:
-        """``~/rigid_body_correction`` at the message's pose, if the model has a correction."""
-        pos = dict(zip(msg.name, msg.position))
-        if not all(n in pos for n in names):
-            return
-        q = np.array([pos[n] for n in names])
-        corr = self.estimator.rigid_body_correction(q)
-        if corr is not None:
-            self.pub_corr.publish(joint_state(hdr, names, q, (), corr))
 
     def cpu_per_message(self) -> dict:
         """
@@ -350,13 +281,14 @@ class EstimatorNode(Node):
         if self._urdf_error:
             d['message'] = self._urdf_error + '; ' + d['message']
             d['level'] = ERROR
-        if self._age:
-            a = np.array(self._age)
+        if self.path.age:
+            a = np.array(self.path.age)
             d['stamp_to_answer_median_s'] = float(np.median(a))
             d['stamp_to_answer_p99_s'] = float(np.percentile(a, 99))
         if d.get('bias') is None:
             d.pop('bias', None)
         d.update(self.cpu_per_message())
+        d['messages_fallback'] = self.path.fallback
         st = DiagnosticStatus()
         st.level = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN,
                     ERROR: DiagnosticStatus.ERROR}[d['level']]

@@ -76,8 +76,10 @@ class WaitSetExecutor:
     and future machinery: callbacks are plain functions, called in this thread. Each wake-up,
     in this order:
 
-    1. services (every request waiting), timers, guard conditions and clients, so that they
-       are answered within one batch of messages even under a flood; QoS event waitables (the
+    1. services (every request waiting), timers, guard conditions and clients, at most
+       ``FULL_PERIOD_S`` after they became ready even under a flood: a wake-up within that time
+       of the last full round waits for messages (and this executor's guard) only, which at
+       1 kHz spares most of the wait set's cost per message; QoS event waitables (the
        default "incompatible QoS" handlers of every publisher, a subscription's message-lost
        event) at most every ``EVENT_PERIOD_S``: each costs a few us of Python per wake-up;
     2. the messages: a subscription with a batch handler (``set_batch_handler``) gets every
@@ -89,8 +91,7 @@ class WaitSetExecutor:
     kept between wake-ups and rebuilt only when the
     nodes' entities change (rclpy calls ``wake`` on every create and destroy). An exception in a
     callback propagates out of ``spin_once``, as with rclpy's executors; a coroutine callback
-    is not supported. ``stats``: thread CPU (ns) spent in ``spin_once`` and in batch handlers,
-    messages and batches handed over.
+    is not supported. ``stats``: wake-ups, messages and batches handed over, the largest batch.
 
     It depends on rclpy internals of the pinned Jazzy wheels (rclpy 7.1); the node tests run
     with it.
@@ -98,6 +99,8 @@ class WaitSetExecutor:
 
     #: longest a QoS event waits to be served (s)
     EVENT_PERIOD_S = 0.1
+    #: longest a service, timer or client waits for its turn while messages keep coming (s)
+    FULL_PERIOD_S = 0.005
 
     def __init__(self, *, context=None):
         from rclpy.utilities import get_default_context
@@ -110,8 +113,7 @@ class WaitSetExecutor:
         self._events_at = 0.0
         self._is_shutdown = False
         self._outbox: deque = deque()        # deferred responses (service, header, response)
-        self.stats = {'spins': 0, 'cpu_spin_ns': 0, 'cpu_batch_ns': 0, 'messages': 0,
-                      'batches': 0, 'max_batch': 0}
+        self.stats = {'spins': 0, 'messages': 0, 'batches': 0, 'max_batch': 0}
 
     @property
     def context(self):
@@ -203,25 +205,39 @@ class WaitSetExecutor:
             n['clients'] + len(found['clients']), n['services'] + len(found['services']),
             n['events'], self._context.handle)
         self._stack = stack
+        # each wake-up adds the same handles and asks the wait set which of them are ready (by
+        # pointer): a few calls per wake-up, not one per entity and kind
         self._subs = [(s, getattr(s, 'dgp_batch', None),
                        s._callback_type is Subscription.CallbackType.MessageOnly)
                       for s in found['subs']]
         self._timers, self._services = found['timers'], found['services']
         self._clients, self._guards, self._waitables = (found['clients'], found['guards'],
                                                         found['waits'])
+        # between full rounds (at most every FULL_PERIOD_S) a wake-up waits for messages only
+        self._ws_msgs = _rclpy.WaitSet(len(found['subs']), 1, 0, 0, 0, 0, self._context.handle)
+        self._full_due = 0.0
+        ws = self._ws
+        self._adds = [(ws.add_subscription, [s.handle for s, _, _ in self._subs]),
+                      (ws.add_timer, [t.handle for t in self._timers]),
+                      (ws.add_service, [x.handle for x in self._services]),
+                      (ws.add_client, [c.handle for c in self._clients]),
+                      (ws.add_guard_condition,
+                       [g.handle for g in self._guards] + [self._guard.handle])]
+        self._by_ptr = {}
+        for kind, items, handle in (('subscription', self._subs, lambda e: e[0].handle),
+                                    ('timer', self._timers, lambda e: e.handle),
+                                    ('service', self._services, lambda e: e.handle),
+                                    ('client', self._clients, lambda e: e.handle),
+                                    ('guard_condition', self._guards, lambda e: e.handle)):
+            self._by_ptr[kind] = {handle(e).pointer: e for e in items}
         self._dirty = False
 
     def spin_once(self, timeout_sec: Optional[float] = None) -> None:
         """Wait for work (at most ``timeout_sec``; None: until there is some) and do it."""
         if self._is_shutdown or not self._context.ok():
             return
-        t0 = time.thread_time_ns()
-        try:
-            self._spin_once(timeout_sec)
-        finally:
-            st = self.stats
-            st['spins'] += 1
-            st['cpu_spin_ns'] += time.thread_time_ns() - t0
+        self.stats['spins'] += 1
+        self._spin_once(timeout_sec)
 
     def _flush_outbox(self) -> None:
         while self._outbox:
@@ -234,15 +250,18 @@ class WaitSetExecutor:
     def _spin_once(self, timeout_sec: Optional[float]) -> None:
         if self._dirty:
             self._rebuild()
-        self._flush_outbox()
+        if self._outbox:
+            self._flush_outbox()
+        now = time.monotonic()
+        if now < self._full_due and self._subs:
+            self._messages_only(timeout_sec, self._full_due - now)
+            return
+        self._full_due = now + self.FULL_PERIOD_S
         ws = self._ws
         ws.clear_entities()
-        i_subs = [ws.add_subscription(s.handle) for s, _, _ in self._subs]
-        i_timers = [ws.add_timer(t.handle) for t in self._timers]
-        i_services = [ws.add_service(s.handle) for s in self._services]
-        i_clients = [ws.add_client(c.handle) for c in self._clients]
-        i_guards = [ws.add_guard_condition(g.handle) for g in self._guards]
-        ws.add_guard_condition(self._guard.handle)
+        for add, handles in self._adds:
+            for h in handles:
+                add(h)
         now = time.monotonic()
         events = self._waitables if now - self._events_at >= self.EVENT_PERIOD_S else ()
         for w in events:
@@ -252,39 +271,64 @@ class WaitSetExecutor:
         timeout = self.EVENT_PERIOD_S if timeout_sec is None or timeout_sec < 0 else \
             min(float(timeout_sec), self.EVENT_PERIOD_S)
         ws.wait(int(timeout * 1e9))
-        if self._dirty or not self._context.ok():
+        if self._dirty:
             return                      # entities changed (or shut down): rebuild first
-        self._flush_outbox()
-        ready = ws.is_ready
-        for s, i in zip(self._services, i_services):
-            if ready('service', i):
-                self._serve(s)
-        for t, i in zip(self._timers, i_timers):
-            if ready('timer', i):
+        if self._outbox:
+            self._flush_outbox()
+        ready, by_ptr = ws.get_ready_entities, self._by_ptr
+        if self._services:
+            for p in ready('service'):
+                self._serve(by_ptr['service'][p])
+        if self._timers:
+            for p in ready('timer'):
+                t = by_ptr['timer'][p]
                 try:
                     with t.handle:
                         t.handle.call_timer()
                 except InvalidHandle:
                     continue
                 t.callback()
-        for g, i in zip(self._guards, i_guards):
-            if ready('guard_condition', i):
-                g._executor_triggered = False
-                if g.callback is not None:
-                    g.callback()
-        for c, i in zip(self._clients, i_clients):
-            if ready('client', i):
-                self._respond(c)
+        if self._guards:
+            for p in ready('guard_condition'):
+                g = by_ptr['guard_condition'].get(p)
+                if g is not None:
+                    g._executor_triggered = False
+                    if g.callback is not None:
+                        g.callback()
+        if self._clients:
+            for p in ready('client'):
+                self._respond(by_ptr['client'][p])
         for w in events:
             if w.is_ready(ws):
                 self._run_waitable(w)
-        self._flush_outbox()            # what a timer or a reply just answered: before a batch
-        for (s, batch, message_only), i in zip(self._subs, i_subs):
-            if ready('subscription', i):
-                if batch is None:
-                    self._take_one(s, message_only)
-                else:
-                    self._take_batch(s, *batch)
+        if self._outbox:
+            self._flush_outbox()        # what a timer or a reply just answered: before a batch
+        for p in ready('subscription'):
+            s, batch, message_only = by_ptr['subscription'][p]
+            if batch is None:
+                self._take_one(s, message_only)
+            else:
+                self._take_batch(s, *batch)
+
+    def _messages_only(self, timeout_sec: Optional[float], left: float) -> None:
+        """Wait (at most until the next full round) for messages and this executor's guard."""
+        ws = self._ws_msgs
+        ws.clear_entities()
+        for s, _, _ in self._subs:
+            ws.add_subscription(s.handle)
+        ws.add_guard_condition(self._guard.handle)
+        timeout = left if timeout_sec is None or timeout_sec < 0 else \
+            min(float(timeout_sec), left)
+        ws.wait(int(timeout * 1e9))
+        if self._dirty:
+            return
+        by_ptr = self._by_ptr['subscription']
+        for p in ws.get_ready_entities('subscription'):
+            s, batch, message_only = by_ptr[p]
+            if batch is None:
+                self._take_one(s, message_only)
+            else:
+                self._take_batch(s, *batch)
 
     def _serve(self, srv) -> None:
         """Answer every request waiting at ``srv`` (a ``DeferredResponse`` later)."""
@@ -367,11 +411,8 @@ class WaitSetExecutor:
             pass
         if msgs:
             st = self.stats
-            t0 = time.thread_time_ns()
-            try:
-                handler(msgs, infos)
-            finally:
-                st['cpu_batch_ns'] += time.thread_time_ns() - t0
-                st['messages'] += len(msgs)
-                st['batches'] += 1
-                st['max_batch'] = max(st['max_batch'], len(msgs))
+            st['messages'] += len(msgs)
+            st['batches'] += 1
+            if len(msgs) > st['max_batch']:
+                st['max_batch'] = len(msgs)
+            handler(msgs, infos)

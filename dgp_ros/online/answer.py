@@ -110,35 +110,42 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
             conf[:] = 0.0
             tau = None
     if tau is None:
-        tau, std, D = _prior(snap, Q, want_damping)
+        tau, std, D = _prior(snap, Q, want_damping, want_stddev)
     tau, std, D, source = _gate(snap, Q, tau, std, D, source, want_stddev, want_damping,
                                 passivity, health)
     conf[source != 'model'] = 0.0
     return tau, std, D, source, conf
 
 
-def _prior(snap: Optional[Snapshot], Q: np.ndarray, want_damping: bool):
+def _prior(snap: Optional[Snapshot], Q: np.ndarray, want_damping: bool,
+           want_stddev: bool = True):
     """
     (tau, std, D) of the fallback ``a diag(m_d(qd)) qd``: the passive prior times its gain.
 
     Zero before any snapshot, and where the prior has earned no gain yet (``grounds``).
     """
     k, N = Q.shape
+    if not want_stddev:
+        std = np.full((k, N), np.nan)           # not computed: nobody subscribes
     if snap is None or snap.prior is None:
         d = np.zeros((k, N))
-        std = np.zeros((k, N))
+        if want_stddev:
+            std = np.zeros((k, N))
     else:
         d = np.asarray(snap.prior.diag(Q), float)
         if snap.prior_gain is not None:
             d = d * snap.prior_gain
-        std = np.broadcast_to(snap.prior_std, (k, N)).copy()
+        if want_stddev:
+            std = np.broadcast_to(snap.prior_std, (k, N)).copy()
     tau = d * Q
-    bad = ~np.all(np.isfinite(tau), axis=1)
-    if np.any(bad):
+    if not np.isfinite(tau).all():
+        bad = ~np.isfinite(tau).all(axis=1)
         d[bad], tau[bad] = 0.0, 0.0
+    if not want_damping:
+        return tau, std, None
     D = np.zeros((k, N, N))
     D[:, np.arange(N), np.arange(N)] = d
-    return tau, std, D if want_damping else None
+    return tau, std, D
 
 
 def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, health):
@@ -149,23 +156,31 @@ def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, he
     passivity is 'none') and bounded by what was learned.
     """
     h = health
-    finite = np.all(np.isfinite(tau), axis=1)
+    finite = np.isfinite(tau).all(axis=1)
     if want_stddev:
-        finite &= np.all(np.isfinite(std), axis=1)
+        finite &= np.isfinite(std).all(axis=1)
     if D is not None:
-        finite &= np.all(np.isfinite(D), axis=(1, 2))
+        finite &= np.isfinite(D).all(axis=(1, 2))
     bad = ~finite
-    h.nonfinite_outputs += int(bad.sum())
+    every = bool(finite.all())                  # the usual case: nothing to replace
+    if not every:
+        h.nonfinite_outputs += int(bad.sum())
     if passivity != 'none':
-        safe = np.where(finite[:, None], tau, 0.0)
+        safe = tau if every else np.where(finite[:, None], tau, 0.0)
         power = np.einsum('ij,ij->i', Q, safe)
-        negative = finite & (power < -passive_tolerance(Q, safe))
-        h.passivity_fallbacks += int(negative.sum())
-        bad |= negative
-    if np.any(bad):
+        negative = power < -passive_tolerance(Q, safe)
+        if not every:
+            negative &= finite
+        if negative.any():
+            h.passivity_fallbacks += int(negative.sum())
+            bad |= negative
+            every = False
+    if not every:
         pt, ps, pD = _prior(snap, Q[bad], want_damping)
         tau, std = tau.copy(), std.copy()
-        tau[bad], std[bad] = pt, np.where(np.isfinite(ps), ps, 0.0)
+        tau[bad] = pt
+        if want_stddev:
+            std[bad] = np.where(np.isfinite(ps), ps, 0.0)
         if D is not None:
             D = D.copy()
             D[bad] = pD if pD is not None else 0.0
@@ -174,6 +189,24 @@ def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, he
     if snap is not None and snap.velocity_box is not None:
         tau, D = _bound(snap, Q, tau, D, health, passivity)
     return tau, std, D, source
+
+
+_LIMIT = (None, None)       # (the last snapshot, its learned limit): read and set as one
+
+
+def _limit(snap: Snapshot) -> np.ndarray:
+    """Return ``BOUND_FACTOR`` x the learned force, within ``RESIDUAL_FACTOR`` x the residual."""
+    global _LIMIT
+    last = _LIMIT
+    if last[0] is snap:
+        return last[1]
+    limit = BOUND_FACTOR * np.maximum(snap.force_bound, 1e-12)
+    if snap.residual_bound is not None:
+        # targets a correction enlarged (up to CORRECTION_INFLATION x the residual) do not
+        # carry the answers further than RESIDUAL_FACTOR x the largest residual learned
+        limit = np.minimum(limit, RESIDUAL_FACTOR * np.maximum(snap.residual_bound, 1e-12))
+    _LIMIT = (snap, limit)
+    return limit
 
 
 def _bound(snap: Snapshot, Q, tau, D, health, passivity: str):
@@ -188,11 +221,7 @@ def _bound(snap: Snapshot, Q, tau, D, health, passivity: str):
     largest residual it learned (``residual_bound``), the prior raises the limit at most to
     ``BOUND_FACTOR`` x it, and no answer goes beyond ``RESIDUAL_FACTOR`` x it.
     """
-    limit = BOUND_FACTOR * np.maximum(snap.force_bound, 1e-12)
-    if snap.residual_bound is not None:
-        # targets a correction enlarged (up to CORRECTION_INFLATION x the residual) do not
-        # carry the answers further than RESIDUAL_FACTOR x the largest residual learned
-        limit = np.minimum(limit, RESIDUAL_FACTOR * np.maximum(snap.residual_bound, 1e-12))
+    limit = _limit(snap)
     worst = (np.abs(tau) / limit).max(axis=1)
     big = worst > 1.0
     if snap.prior is not None and big.any():

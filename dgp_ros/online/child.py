@@ -21,6 +21,7 @@ import numpy as np
 
 from .config import EstimatorConfig
 from .learner import Learner
+from .plan import PlanCache
 from .ring import SampleRing
 
 __all__ = ['LearnerLoop', 'child_main']
@@ -56,6 +57,7 @@ class LearnerLoop:
         self.row_s = 1e-4               # learning seconds per sample (moving average)
         self.sample_at = time.monotonic()   # when the last samples were taken from the ring
         self.period = self.SNAPSHOT_PERIOD_S
+        self.plans = PlanCache()        # the answer plans sent with the snapshots
         try:
             config = dataclasses.replace(EstimatorConfig.from_dict(cfg), refit_mode='async')
             self.learner = Learner(config)
@@ -178,6 +180,10 @@ class LearnerLoop:
         if L.version != self.sent_version and now - self.sent_at >= self.period:
             snap = L.snapshot(variance=self.variance, frozen=True)
             if snap is not None:
+                if snap.model is not None:
+                    # the answer plan is built and checked here: the node's receiver only
+                    # unpickles it (its thread holds the GIL the message path needs)
+                    snap = dataclasses.replace(snap, plan=self.plans.build(snap.model))
                 self.out.send(('snapshot', snap))
                 self.sent_version, self.sent_at = snap.version, now
                 n, N = (0, 0) if snap.model is None else snap.model.posterior_.X.shape

@@ -3,8 +3,10 @@ The online estimator's message path: validate, answer, hand over to the learner 
 
 ``process`` validates one measurement, hands it to the learner and answers with the estimate at
 the measured velocity from the newest learner snapshot; ``process_batch`` does the same for every
-message waiting at once, with one vectorized prediction. The learner (``learner.Learner``) is
-where everything is learned; where it runs is ``refit_mode``:
+message waiting at once, with one vectorized prediction, and ``process_arrays`` (``batch``) for a
+batch of like messages given as arrays (the node's raw path), without an object per message.
+The learner (``learner.Learner``) is where everything is learned; where it runs is
+``refit_mode``:
 
 * ``'process'`` (the node's default): a child process (``process.LearnerProcess``) fed through a
   bounded shared-memory channel; snapshots come back and are swapped in by one reference
@@ -30,6 +32,7 @@ import numpy as np
 from dgp_ros.gp.passivity import policy_class
 
 from .answer import answer, Estimate
+from .batch import ArrayPath
 from .config import EstimatorConfig
 from .health import Health
 from .learner import FRONT_END, Learner
@@ -39,7 +42,7 @@ from .snapshot import Snapshot
 __all__ = ['OnlineEstimator', 'Estimate']
 
 
-class OnlineEstimator:
+class OnlineEstimator(ArrayPath):
     """
     Online D-GP estimator (module docstring).
 
@@ -70,7 +73,7 @@ class OnlineEstimator:
             from .process import LearnerProcess
             # a new snapshot's answer plan is built in the receiver thread, before the swap
             self._learner = LearnerProcess(
-                self.config, prepare=lambda snap: self._plans.prepare(snap.model))
+                self.config, prepare=lambda snap: self._plans.prepare(snap.model, snap.plan))
         else:
             self._learner = Learner(self.config, model_factory, model_loader)
         self._init_state()
@@ -85,7 +88,7 @@ class OnlineEstimator:
         self._same_stamps = 0
         self._advancing = 0
         self._arrival_t0: Optional[float] = None        # set: learning uses arrival time
-        self._last_est: Optional[Estimate] = None
+        self._last_est = None               # the newest Estimate (or batch of Answers)
         self._order = None                  # (a message's names, their configured order)
         self.health = Health()
 
@@ -441,7 +444,7 @@ class OnlineEstimator:
         """
         learner = self._learner.status()
         with self._lock:
-            last = self._last_est
+            last = self.last_estimate(self._last_est)
             d = {'model': self.config.model, 'passivity': self.config.passivity,
                  'measured_power': last.measured_power if last else float('nan'),
                  'estimated_power': last.power if last else float('nan'),

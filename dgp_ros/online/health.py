@@ -16,9 +16,10 @@ __all__ = ['Health', 'LearnerHealth', 'LearnerReport', 'GapCounter', 'POWER_WIND
            'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
 
 # Reasons a message can be rejected for (one counter each).
+# ``undecodable``: bytes that are not a JointState (the node's raw subscription; a bag's reader).
 REJECT_REASONS = ('empty', 'length_mismatch', 'bad_names', 'duplicate_name', 'missing_joint',
                   'dimension_mismatch', 'too_many_joints', 'non_finite', 'out_of_range',
-                  'bad_stamp', 'missing_position')
+                  'bad_stamp', 'missing_position', 'undecodable')
 # Status levels (the values of diagnostic_msgs/DiagnosticStatus OK/WARN/ERROR).
 OK, WARN, ERROR = 0, 1, 2
 

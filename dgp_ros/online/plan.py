@@ -66,6 +66,10 @@ class AnswerPlan:
         self.mean = p.mean
         # the generic force (diag(m_d) qd) is computed from the diagonal once when D is built
         self.force_is_diag = type(self.mean).force is PriorMean.force
+        # a full model's elements in row-major order: the element weights are G itself
+        N = self.N
+        self.grid = self.E == N * N and np.array_equal(self.rows, np.repeat(np.arange(N), N)) \
+            and np.array_equal(self.cols, np.tile(np.arange(N), N))
 
     def current(self, model) -> bool:
         """Tell whether the plan still describes ``model`` (nothing it caches was replaced)."""
@@ -91,7 +95,10 @@ class AnswerPlan:
         np.maximum(A, EXP_FLOOR, out=A)
         np.exp(A, out=A)
         A *= keep
-        Gf = np.einsum('kne,ne->ke', A, self.V)
+        A *= self.V                                                  # (n, E), each query
+        Gf = A.sum(axis=1)                                          # (k, E)
+        if self.grid:
+            return Gf.reshape(k, self.N, self.N)
         G = np.zeros((k, self.N, self.N))
         G[:, self.rows, self.cols] = Gf
         return G
@@ -116,8 +123,7 @@ class AnswerPlan:
             dg = self.mean.diag(Q)
             C = G * self.dscale
             D = C if w is None else w[:, None, None] * C
-            idx = np.arange(self.N)
-            D[:, idx, idx] += dg
+            D.reshape(len(D), self.N * self.N)[:, ::self.N + 1] += dg     # the diagonal
         if D is not None and pol.needs_damping:
             tau = np.einsum('kij,kj->ki', D, Q)
         else:
@@ -147,7 +153,8 @@ class PlanCache:
 
     ``prepare(model)`` builds and checks the plan of a model before it is answered from (a learner
     process's receiver thread calls it for every new snapshot, so that the message path only
-    picks it up); ``get(model)`` builds it itself when nothing was prepared. ``built``,
+    picks it up; a learner process sends the plan it built with the snapshot, ``build``, and the
+    receiver only takes it); ``get(model)`` builds it itself when nothing was prepared. ``built``,
     ``verified`` and ``mismatches`` count plans; a plan that failed its check is not used for its
     model (the model answers).
     """
@@ -162,14 +169,24 @@ class PlanCache:
         self.built = self.verified = self.mismatches = 0
         self.last_error = ''
 
-    def prepare(self, model) -> None:
-        """Build and check the plan of ``model`` now (another thread), for ``get`` to pick up."""
+    def prepare(self, model, built: Optional[tuple] = None) -> None:
+        """
+        Build and check the plan of ``model`` now (another thread), for ``get`` to pick up.
+
+        ``built``: (plan, usable) as ``build`` returned it where the model was made (a learner
+        process, in the snapshot): taken as it is when it describes ``model``.
+        """
         if model is None:
             return
         plan = self._plan
         if plan is not None and plan.current(model):
             return
-        self._ready = self._build(model)
+        if built is not None and built[0] is not None and built[0].current(model):
+            self._ready = built
+            if not built[1]:
+                self.mismatches += 1            # checked there, and it disagreed
+            return
+        self._ready = self.build(model)
 
     def get(self, model) -> Optional[AnswerPlan]:
         """Return the plan of ``model`` (None: answer through the model)."""
@@ -180,12 +197,12 @@ class PlanCache:
         if ready is not None and ready[0] is not None and ready[0].current(model):
             self._plan, self._ok = ready
             return ready[0] if ready[1] else None
-        plan, ok = self._build(model)
+        plan, ok = self.build(model)
         self._plan, self._ok = plan, ok
         return plan if ok else None
 
-    def _build(self, model) -> tuple:
-        """Return (plan or None, usable) for ``model``."""
+    def build(self, model) -> tuple:
+        """Return (plan or None, usable) for ``model``, checked as the module docstring says."""
         try:
             plan = AnswerPlan(model)
         except Exception as exc:      # noqa: BLE001 - a model without the pieces: its own path

@@ -88,6 +88,31 @@ class SampleRing:
             self._lock.release()
         return True
 
+    def push_rows(self, rows: np.ndarray) -> int:
+        """
+        Append rows (k, width) in order without waiting; return how many were kept (a prefix).
+
+        ``push`` for each row, under one lock: the backlog first, then the rows that fit; with
+        the lock taken they join the backlog as far as it has room.
+        """
+        backlog = self._backlog
+        if not self._lock.acquire(False):
+            room = max(0, min(len(rows), self.BACKLOG_ROWS - len(backlog)))
+            backlog.extend(np.array(rows[:room], dtype=np.float64))
+            return room
+        try:
+            hdr = self._hdr
+            w = self._write_backlog() if backlog else int(hdr[0])
+            kept = max(0, min(len(rows), self.capacity - (w - int(hdr[1]))))
+            if kept == 1:
+                self._data[w % self.capacity] = rows[0]
+            elif kept:
+                self._data[(w + np.arange(kept)) % self.capacity] = rows[:kept]
+            hdr[0] = w + kept
+        finally:
+            self._lock.release()
+        return kept
+
     def flush(self) -> None:
         """
         Write the backlog into the ring if the lock is free now (never waits).

@@ -39,6 +39,9 @@ class Snapshot:
     per_joint : the model's guarantee is ``psd``: the blend may weigh joints apart.
     frozen : a self-contained copy (another process); variance : the posterior variance is
         available.
+    plan : (``plan.AnswerPlan`` or None, usable) of ``model``, built where the snapshot was
+        taken (a learner process builds and checks it, so that the node only unpickles it), or
+        None: the message path builds it.
     """
 
     version: int
@@ -55,6 +58,7 @@ class Snapshot:
     prior_gain: Optional[np.ndarray] = None
     confidence: Optional[np.ndarray] = None
     per_joint: bool = False
+    plan: Optional[tuple] = None
 
 
 class SwapLog:

@@ -21,8 +21,9 @@ parameter call waits for it):
 Until step 3 is done ``status()['learning']`` is 'stopping' and the answers come from the model
 as it was (with its guarantee then); afterwards 'off', with the proven guarantee, and every
 answer comes from exactly the saved model: no blend toward the fallback (``grounds``), the
-confidence published beside it is the one the model had earned when learning stopped. Switching it on again resumes learning where it
-stopped: the same buffer, model and history; the refit clock starts again at the next sample.
+confidence published beside it is the one the model had earned when learning stopped.
+Switching it on again resumes learning where it stopped: the same buffer, model and history;
+the refit clock starts again at the next sample.
 """
 from __future__ import annotations
 
