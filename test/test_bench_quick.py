@@ -245,3 +245,27 @@ def test_learning_switch_quick(tmp_path):
     assert p['set_on_ok'] and p['learning_after_on'] == 'on' and p['added_after_on'] > 0, p
     assert c['learning'] == 'off' and c['added_at_end'] == 0 and c['load_error'] == '', c
     assert c['scored']['answers'] > 100 and c['scored']['max_rel_diff'] <= 1e-12, c
+
+
+@pytest.mark.slow
+def test_no_harm_quick(tmp_path):
+    """
+    bench/no_harm.py --quick: the demo's closed-loop runs with a restart, scored per window.
+
+    Every estimator run has its per-window ratios over none and its verdict; the restart run has
+    the windows after the restart; the confidence windows are in [0, 1].
+    """
+    import json
+    r = subprocess.run([sys.executable, os.path.join(BENCH, 'no_harm.py'), '--quick', '--out',
+                        str(tmp_path), '--robots', 'ur5'],
+                       cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT)
+    assert r.returncode == 0, r.stderr[-4000:]
+    s = section(tmp_path, 'no_harm')
+    assert table_rows(s, ('ur5', 'dgp')) and table_rows(s, ('ur5', 'dgp_restart')), s
+    j = json.loads((tmp_path / 'bench' / 'no_harm_ur5.json').read_text())
+    t = j['transient']
+    w = t['dgp']['window_ratios']
+    assert len(w) == 6 and all(math.isfinite(x) for x in w), w
+    assert t['dgp_restart']['after_restart_ratios'], t['dgp_restart']
+    for w in j['confidence_windows'].values():
+        assert all(0.0 <= c <= 1.0 for row in w for c in row)
