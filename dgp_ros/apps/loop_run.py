@@ -222,5 +222,6 @@ def score(run: dict, start_s: float, end_s: Optional[float] = None):
 def windows(run: dict, width_s: float = 1.0) -> np.ndarray:
     """Tracking RMS per joint over consecutive windows from t = 0: (w, N) [rad]."""
     t = run['t']
-    k = int(np.floor((t[-1] + 1e-9) / width_s))
+    dt = float(t[1] - t[0]) if len(t) > 1 else 0.0        # the last step's window ends at t+dt
+    k = int(np.floor((t[-1] + dt) / width_s + 1e-9))
     return np.array([score(run, i * width_s, (i + 1) * width_s)[0] for i in range(k)])

@@ -493,8 +493,7 @@ def load_model(path) -> _DGP:
             # rebuilt by the layer that owns its kind (the robot front end: a URDF needs
             # pinocchio), through the registry it fills (``persistence``)
             model.correction_ = rebuild_correction(f.correction)
-        if f.grounds is not None:
-            model.grounds_ = dict(f.grounds)
+        model.grounds_ = None if f.grounds is None else dict(f.grounds)
     except Exception as exc:      # a crafted header: wrong names, types or policy state
         raise ValueError(f'{path}: malformed model file ({type(exc).__name__}: {exc})') \
             from None

@@ -31,7 +31,8 @@ where the model that earned its gain on the last second is wrong again. So the c
 the force) also needs ``EVIDENCE_S`` of learning time over which the model was scored: it is
 multiplied by a smoothstep of that time from 0 to 1 (a learner restarted from a model keeps
 the evidence it had). With 2 s, a simulated Panda in closed loop still had a joint's error
-peak at 3.3x that with no compensation in its first 2 s; with 3 s, 1.2x on another seed.
+peak at 3.3x that with no compensation in its first 2 s; with 3 s, 1.2x on another seed; with
+4 s, 1.054x on the ledger's Panda run; with 5 s, 1.035x.
 
 All gains are shrunk toward 0 by ``PSEUDO_SAMPLES`` samples' worth of their own error variance (a
 Bayesian regression with a unit prior on the gain): with no evidence yet the gain is 0 (no
@@ -68,7 +69,7 @@ HALF_LIFE = 100
 PSEUDO_SAMPLES = 20.0
 #: learning time (s) over which the model's answers must have been scored before its confidence
 #: is full: the confidence is multiplied by a smoothstep from 0 to 1 over it (``Skill.note``)
-EVIDENCE_S = 4.0
+EVIDENCE_S = 5.0
 #: a gain at least this large counts in full (a gain of 0.8 is an answer that is right up to a
 #: 20 % overestimate on the recent samples)
 FULL_GAIN = 0.8

@@ -13,14 +13,11 @@ message path uses, and runs a real ``Learner`` in a child process at a lower sch
   residual samples it completed; a receiver thread here installs them by reference assignment;
 * commands (refit, save, reset, reconfigure, ...) go through a pipe and are answered by id.
 
-The child is forked from a fork server started by a fresh interpreter (``forkserver``, with the
-learner's modules preloaded, so a restart costs a fork, not an interpreter start), never from the
-node process itself, whose DDS threads a fork would copy into an inconsistent state. It ignores
-SIGINT and SIGTERM (a terminal's Ctrl-C, or a signal to the process group, reaches it too; the
-node decides: it saves through the child, then stops it), and exits when the node's pipe
-closes (the node died). If it dies, the receiver thread counts it, says why (``status``), and
-starts a new one from the last snapshot's model: the answers never stop, nothing learned up to
-that snapshot is lost.
+The child is forked from a ``forkserver`` (learner modules preloaded), never from the node
+process, whose DDS threads a fork would copy inconsistently. It ignores SIGINT and SIGTERM (the
+node decides: it saves through the child, then stops it) and exits when the node's pipe closes.
+If it dies, the receiver thread counts it, says why (``status``) and starts a new one from the
+last snapshot's model: the answers never stop (docs/ARCHITECTURE.md, "The learner process").
 """
 from __future__ import annotations
 
@@ -316,8 +313,7 @@ class LearnerProcess:
         """
         Hand one sample to the child (never waits); (queued, []).
 
-        With learning off only what the residual topic needs is sent (with inverse dynamics,
-        while it has a subscriber): the child would learn nothing from the rest.
+        Learning off: only the samples the residual topic needs (inverse dynamics, subscribed).
         """
         if not self.config.learning and not (self.needs_position and self._want_residuals):
             return False, []
