@@ -83,7 +83,8 @@ def report(a, res: dict, wall: float) -> str:
               '| robot | run | windows |', '|---|---|---|']
     for robot, s in res.items():
         for c, w in s['confidence_windows'].items():
-            lines.append(f'| {robot} | {c} | {_f(np.mean(w, axis=1))} |')
+            if c.startswith('dgp'):
+                lines.append(f'| {robot} | {c} | {_f(np.mean(w, axis=1))} |')
     return '\n'.join(lines) + '\n'
 
 

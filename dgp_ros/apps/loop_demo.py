@@ -130,7 +130,8 @@ def summarize(runs: dict, learn: float, names) -> dict:
 
 def _mean_windows(t, x, width_s: float = 1.0) -> np.ndarray:
     """Mean of x (k, N) per joint over consecutive windows of t (k,) from 0: (w, N)."""
-    k = int(np.floor((t[-1] + 1e-9) / width_s))
+    dt = float(t[1] - t[0]) if len(t) > 1 else 0.0        # as loop_run.windows counts them
+    k = int(np.floor((t[-1] + dt) / width_s + 1e-9))
     return np.array([x[(t >= i * width_s) & (t < (i + 1) * width_s)].mean(axis=0)
                      for i in range(k)])
 
