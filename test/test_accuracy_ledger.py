@@ -49,6 +49,7 @@ def test_a320_whole_flight_one_step_ahead(a320):
     assert a320['absorbs_rejected'] == 0 and a320['refits_failed'] == 0, a320
 
 
+@pytest.mark.timeout(1200)      # 30-65 s alone: the suite's 300 s guard is for hangs
 def test_real_panda_held_out():
     path = panda_dir()
     if path is None:
@@ -59,6 +60,7 @@ def test_real_panda_held_out():
     assert np.all(np.isfinite(r['nmse']))
 
 
+@pytest.mark.timeout(1200)
 def test_simulated_panda_held_out():
     r = ledger.panda_sim_case()
     assert ledger.check('panda_sim_geo', r['geo']) == [], r
