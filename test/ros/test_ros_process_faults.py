@@ -148,6 +148,8 @@ def test_estimator_first_sim_restart_sigkill_and_model_restart(tmp_path):
         est2 = _start(_estimator(model_path, ['-p', 'learning:=false']), logs)
         assert lis.spin_until(lambda: lis.pub.get_subscription_count() > 0, 60, [est2])
         lis.est.clear()                         # (answers to the probes are told by stamp)
+        lis.diag.clear()                        # only est2's diagnostics from here on (the
+        #                                         killed node's last ones said learning: on)
 
         def answers():
             return {m.header.stamp.sec - PROBE_SEC: np.array(m.effort) for m in lis.est
