@@ -78,6 +78,17 @@ class Absorber:
         return self._seq - self._model_seq if self._model is not None else 0
 
     # ------------------------------------------------------------------ appends
+    def catch_up_paused(self) -> None:
+        """
+        Append the samples the model does not hold yet, once the samples ran out.
+
+        A learner process that fell behind appends nothing while samples queue up (its rebases
+        take them in); when the stream pauses right after, nothing else would bring the last
+        ones to the model before it resumes. Cheap when there is nothing to do.
+        """
+        if self.unheld and not self._append_blocked:
+            self.catch_up()
+
     def catch_up(self) -> int:
         """
         Append every learned sample the model does not hold yet; returns how many.
@@ -119,17 +130,21 @@ class Absorber:
         as soon as the last rebase's cost allows (at most a third of the time rebasing; a ninth
         while samples queue up for the learner: taking every sample in comes first).
         """
-        if self._model is None or not self.config.learning:
-            return False
-        waiting = self.unheld and (not self.appending or self._append_blocked)
-        if not (waiting or self._reselect_due() or
-                self._appended >= max(1, self.config.buffer_size // self.REBASE_FRACTION)):
+        if not self.absorb_wanted():
             return False
         if self.config.refit_mode == 'sync':
             return True
         return time.perf_counter() - self._absorbed_at >= max(self.MIN_ABSORB_S,
                                                               self.absorb_wait *
                                                               self._absorb_cost)
+
+    def absorb_wanted(self) -> bool:
+        """Tell whether a rebase is wanted, however soon its cost allows it (``_absorb_due``)."""
+        if self._model is None or not self.config.learning:
+            return False
+        waiting = self.unheld and (not self.appending or self._append_blocked)
+        return bool(waiting or self._reselect_due() or
+                    self._appended >= max(1, self.config.buffer_size // self.REBASE_FRACTION))
 
     def _absorb_soon(self) -> None:
         """Rebase in line (``sync``), else in the absorber thread (never on the caller's path)."""

@@ -44,6 +44,8 @@ class LearnerLoop:
     SNAPSHOT_BYTES_PER_S = 100e6
     #: the status is sent at least this often (s)
     STATUS_PERIOD_S = 0.25
+    #: gains that changed without a new model are sent at most this often (s)
+    GAINS_PERIOD_S = 0.05
 
     def __init__(self, cfg: dict, cmd, out, lock, ring_info, init, variance: bool,
                  residuals: bool, sched: str = ''):
@@ -52,6 +54,9 @@ class LearnerLoop:
         self.variance, self.residuals = variance, residuals
         self.ring = None
         self.sent_version = -1
+        self.sent_gains = -1            # the learner's gains_seq the node has
+        self.gains_at = 0.0             # when gains alone were last sent
+        self.rejected_at = 0            # absorbs_rejected when the last 'wait' came
         self.waits = []                 # (id, wall deadline) of 'wait' commands
         self.sent_at = self.status_at = 0.0
         self.row_s = 1e-4               # learning seconds per sample (moving average)
@@ -79,6 +84,7 @@ class LearnerLoop:
         L = self.learner
         snap = L.snapshot(variance=variance, frozen=True)
         self.sent_version = L.version if snap is not None else -1
+        self.sent_gains = L.gains_seq
         self.out.send(('ready', {'joint_names': L.joint_names(),
                                  'needs_position': L.needs_position,
                                  'load_error': L.load_error, 'snapshot': snap,
@@ -121,7 +127,9 @@ class LearnerLoop:
                     break
                 busy = self._samples()
                 if not busy:
-                    self.learner.poll(idle=time.monotonic() - self.sample_at >= self.PAUSE_S)
+                    # a caller waiting for the learner to settle has paused the stream
+                    self.learner.poll(idle=bool(self.waits) or
+                                      time.monotonic() - self.sample_at >= self.PAUSE_S)
                 self._publish()
                 if not busy:
                     self.cmd.poll(self.IDLE_WAIT_S)
@@ -146,6 +154,7 @@ class LearnerLoop:
         L.appending = rows.shape[0] < want
         L.absorb_wait = type(L).absorb_wait if L.appending else L.BACKLOG_ABSORB_WAIT
         if not rows.shape[0]:
+            L.catch_up_paused()             # the last samples of a backlog reach the model
             return False
         self.sample_at = time.monotonic()
         t0 = time.perf_counter()
@@ -186,10 +195,19 @@ class LearnerLoop:
                     snap = dataclasses.replace(snap, plan=self.plans.build(snap.model))
                 self.out.send(('snapshot', snap))
                 self.sent_version, self.sent_at = snap.version, now
+                self.sent_gains = L.gains_seq
                 n, N = (0, 0) if snap.model is None else snap.model.posterior_.X.shape
                 size = 8.0 * n * N * (4 + (n if self.variance else 0))
                 self.period = max(self.SNAPSHOT_PERIOD_S, size / self.SNAPSHOT_BYTES_PER_S)
-        if self.waits and not L.refit_running() and L.version == self.sent_version:
+        elif L.gains_seq != self.sent_gains and L.version == self.sent_version and \
+                (self.waits or now - self.gains_at >= self.GAINS_PERIOD_S):
+            # the same model with newer gains: only they travel (the node swaps them in)
+            snap = L.snapshot(variance=self.variance, frozen=True)
+            if snap is not None:
+                self.out.send(('gains', snap.version, snap.model_weight, snap.prior_gain,
+                               snap.confidence))
+            self.sent_gains, self.gains_at = L.gains_seq, now
+        if self.waits and self._settled():
             self.out.send(('status', self._status()))        # arrives before the reply
             self.status_at = now
             for i, _ in self.waits:
@@ -206,6 +224,25 @@ class LearnerLoop:
         if now - self.status_at >= self.STATUS_PERIOD_S:
             self.out.send(('status', self._status()))
             self.status_at = now
+
+    def _settled(self) -> bool:
+        """
+        Tell whether the learner has caught up (a 'wait' is answered then).
+
+        Every sample sent is learned and held by the model (appended, or taken in by a rebase),
+        no job runs or is wanted (a rebase waits for its cost to allow it; one that failed
+        since the 'wait' came is not waited for), and the node has the newest snapshot and
+        gains.
+        """
+        L = self.learner
+        L.poll(idle=True)               # what became due since this round's poll starts now
+        if L.refit_running() or L.version != self.sent_version or \
+                L.gains_seq != self.sent_gains:
+            return False
+        if L.config.learning and (L.unheld or L.absorb_wanted()) and \
+                L.health.absorbs_rejected == self.rejected_at:
+            return False                 # (a running rebase is still wanted until it ends)
+        return self.ring is None or self.ring.pending(timeout=0) == 0
 
     def _status(self) -> dict:
         d = self.learner.status()
@@ -233,6 +270,7 @@ class LearnerLoop:
             elif kind == 'wait':
                 self._drain()
                 self.waits.append((msg[1], msg[2]))
+                self.rejected_at = self.learner.health.absorbs_rejected
                 self.sent_at = 0.0               # publish the newest at once
             else:
                 if kind in ('refit', 'save', 'samples', 'reconfigure'):
@@ -265,9 +303,10 @@ class LearnerLoop:
         except Exception as exc:            # noqa: BLE001 - report, never die on a command
             ok, what = False, f'{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}'
         # the state the command left arrives before its reply
-        if L.version != self.sent_version:
+        if L.version != self.sent_version or L.gains_seq != self.sent_gains:
             self.out.send(('snapshot', L.snapshot(variance=self.variance, frozen=True)))
             self.sent_version, self.sent_at = L.version, time.monotonic()
+            self.sent_gains = L.gains_seq
         self.out.send(('status', self._status()))
         self.out.send(('reply', i, ok, what))
 

@@ -298,6 +298,7 @@ class SkillMixin:
         except Exception:           # noqa: BLE001 - a sample the model cannot answer: no score
             return 0.0
         self._skill.note(target, u, p, full, cons, stamp)
+        self._gains_seq += 1
         return self._skill.surprise
 
     def skill_gains(self):

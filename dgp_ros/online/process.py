@@ -187,6 +187,8 @@ class LearnerProcess:
             kind = msg[0]
             if kind == 'snapshot':
                 self._install(msg[1], received)
+            elif kind == 'gains':
+                self._install_gains(*msg[1:])
             elif kind == 'status':
                 self._status = msg[1]
                 ring = self._ring
@@ -237,6 +239,13 @@ class LearnerProcess:
         self._snap = snap
         if snap is not None:
             self.swaps.note(snap.version, received, time.perf_counter() - t0)
+
+    def _install_gains(self, version: int, model_weight, prior_gain, confidence) -> None:
+        """Swap in the snapshot with the gains the learner earned since (same model)."""
+        snap = self._snap
+        if snap is not None and snap.version == version:
+            self._snap = dataclasses.replace(snap, model_weight=model_weight,
+                                             prior_gain=prior_gain, confidence=confidence)
 
     def _call(self, kind: str, *args, timeout: Optional[float] = None):
         """Send a command and wait for its reply: (ok, payload); (False, why) on a timeout."""
@@ -375,8 +384,16 @@ class LearnerProcess:
         self._call_async('refit', done)
 
     def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
-        """Block until the child has no job running and its newest snapshot is installed."""
+        """
+        Block until the child has caught up and its newest snapshot is installed.
+
+        Caught up: every sample sent is learned and held by the model, no job runs, and the
+        snapshot here carries the newest gains (``LearnerLoop._settled``). False on a timeout.
+        """
         t = 3600.0 if timeout is None else float(timeout)
+        ring = self._ring
+        if ring is not None and ring.backlog:
+            ring.flush(timeout=min(t, 1.0))      # the rows the learner has not seen yet
         ok, version = self._call('wait', time.time() + t, timeout=t + 5.0)
         if not ok:
             return False

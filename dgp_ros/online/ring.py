@@ -113,16 +113,18 @@ class SampleRing:
             self._lock.release()
         return kept
 
-    def flush(self) -> None:
+    def flush(self, timeout: float = 0.0) -> None:
         """
-        Write the backlog into the ring if the lock is free now (never waits).
+        Write the backlog into the ring if the lock is free within ``timeout`` s (0: now).
 
         A backlog is otherwise written by the next ``push``: when the stream pauses, the node
         calls this (``LearnerProcess``'s receiver, at each status of the learner) so that the
         last rows before a pause reach the learner too.
         """
         backlog = self._backlog
-        if not backlog or not self._lock.acquire(False):
+        if not backlog:
+            return
+        if not (self._lock.acquire(True, timeout) if timeout > 0 else self._lock.acquire(False)):
             return
         try:
             self._write_backlog()

@@ -1,0 +1,164 @@
+"""
+A learner that fell behind settles when the stream pauses; the answers carry the newest gains.
+
+- The learner process's loop appends nothing while samples queue up (its rebases take them in).
+  When the queue runs dry, the last samples still reach the model before the stream resumes
+  (a CI run under load served a model that lacked the last 600 samples for as long as the
+  stream paused).
+- ``wait_for_refit`` returns once every sample sent is learned and held by the model and the
+  node's snapshot carries the learner's newest gains, so a model saved then answers as the
+  node did.
+- A sample that moves the gains but not the model (a near-duplicate the buffer skips) reaches
+  the snapshot's gains all the same.
+"""
+import dataclasses
+import multiprocessing
+import threading
+import time
+
+import numpy as np
+
+from dgp_ros.online import EstimatorConfig, OnlineEstimator
+from dgp_ros.online.child import LearnerLoop
+from dgp_ros.online.learner import Learner
+from dgp_ros.online.ring import SampleRing
+
+NAMES = ['a', 'b', 'c']
+
+
+def true_tau(q):
+    """Return a passive nonlinear damping force."""
+    q = np.asarray(q, float)
+    return np.array([2.0 + np.sin(q[0]), 1.0 + 0.5 * q[1] ** 2, 0.5 + 0.1 * abs(q[2])]) * q
+
+
+def path(t):
+    """Return velocities that keep reaching new values (a drift plus a wobble)."""
+    return np.array([np.sin(0.9 * t) + 0.05 * t, 0.8 * np.cos(0.4 * t), 1.0 + 0.1 * t])
+
+
+def cfg(**kw):
+    base = {'model': 'full', 'passivity': 'projected', 'buffer_size': 60, 'min_samples': 10,
+            'refit_mode': 'async', 'refit_period_s': 0.0, 'selection': 'all',
+            'prior': 'viscous', 'bias': False, 'optimize_every_n_refits': 0}
+    base.update(kw)
+    return EstimatorConfig(**base)
+
+
+def _row(t):
+    q = path(t)
+    return np.concatenate(([t], q, true_tau(q), np.full(3, np.nan)))
+
+
+def _until(cond, timeout):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and not cond():
+        time.sleep(0.01)
+    return cond()
+
+
+def test_a_loop_that_fell_behind_brings_the_last_samples_to_the_model_when_they_run_out():
+    ctx = multiprocessing.get_context('fork')
+    lock = ctx.Lock()
+    cmd_node, cmd_child = ctx.Pipe()
+    out_node, out_child = ctx.Pipe()
+    ring = SampleRing(10, 4096, lock)
+    got = []
+    reader = threading.Thread(target=lambda: _read(out_node, got), daemon=True)
+    reader.start()
+    loop = LearnerLoop(dataclasses.asdict(cfg()), cmd_child, out_child, lock,
+                       (ring.name, ring.width, ring.capacity), None, False, False)
+    # one sample per round: every round is full, as in a learner that cannot keep up (each
+    # sample costs more than ROUND_S); the loop then never appends while samples wait
+    loop.ROUND_S = 0.0
+    runner = threading.Thread(target=loop.run, daemon=True)
+    runner.start()
+    L = loop.learner
+    # and its rebases wait long while samples queue up: only the end of the queue brings them
+    L.BACKLOG_ABSORB_WAIT = 1e6
+    try:
+        t = 0.0
+        for _ in range(70):
+            ring.push(_row(t))
+            t += 0.05
+        # trained, the buffer full and its hyper-parameters learned on at least half of it (no
+        # refit for a doubled buffer would take the samples in)
+        assert _until(lambda: L.trained and L._opt_n >= 30 and not L.refit_running(), 60), \
+            L.status()
+        for _ in range(300):                     # a burst: the loop falls behind
+            ring.push(_row(t))
+            t += 0.05
+        last = path(t - 0.05)
+        assert _until(lambda: ring.pending() == 0, 60)
+
+        def holds_last():
+            X = L.snapshot(variance=False, frozen=True).model.X_train_
+            return np.any(np.all(np.abs(X - last) <= 1e-12, axis=1))
+        assert _until(lambda: L.unheld == 0 and holds_last(), 30), (L.unheld, L.status())
+        assert L.health.samples_added == 370
+    finally:
+        cmd_node.send(('stop', 5.0))
+        runner.join(30)
+        ring.close()
+        cmd_node.close()
+        out_node.close()
+    assert not runner.is_alive()
+
+
+def _read(conn, got):
+    try:
+        while True:
+            got.append(conn.recv()[0])
+    except (EOFError, OSError):
+        pass
+
+
+def test_wait_for_refit_returns_caught_up_and_a_saved_model_answers_as_the_node_did(tmp_path):
+    path_ = str(tmp_path / 'model.npz')
+    est = OnlineEstimator(cfg(refit_mode='process', model_path=path_))
+    try:
+        t = 0.0
+        for _ in range(400):                       # faster than a first fit: a backlog
+            q = path(t)
+            est.process(t, NAMES, q, true_tau(q))
+            t += 0.05
+        last = path(t - 0.05)
+        assert est.wait_for_refit(300)
+        snap = est._learner.snapshot()
+        assert np.any(np.all(np.abs(snap.model.X_train_ - last) <= 1e-12, axis=1))
+        d = est.diagnostics()
+        assert d['samples_added'] == 400 and d['samples_pending'] == 0, d
+        Qs = np.random.default_rng(2).uniform(-2, 2, (100, 3))
+        before = est.predict(Qs)
+        est.save()
+    finally:
+        est.close()
+    again = OnlineEstimator(cfg(refit_mode='process', model_path=path_))
+    try:
+        assert again.trained and not again.load_error
+        np.testing.assert_array_equal(again.predict(Qs), before)
+    finally:
+        again.close()
+
+
+def test_gains_earned_without_a_new_model_reach_the_snapshot():
+    L = Learner(cfg(refit_mode='sync', selection='novelty', selection_min_distance=0.5))
+    t = 0.0
+    for _ in range(60):
+        q = path(t)
+        L.learn(t, q, true_tau(q))
+        t += 0.05
+    assert L.trained
+    before = L.snapshot(variance=False, frozen=True)
+    q = path(t - 0.05)
+    for _ in range(20):                             # the same velocity: skipped, yet scored
+        L.learn(t, q, 1.3 * true_tau(q))
+        t += 0.05
+    assert L.health.samples_skipped >= 20 and L.version == before.version
+    snap = L.snapshot(variance=False, frozen=True)
+    w, a, c = L.skill_gains()
+    assert not np.array_equal(w, before.model_weight) or not np.array_equal(a, before.prior_gain)
+    np.testing.assert_array_equal(snap.model_weight, w)
+    np.testing.assert_array_equal(snap.prior_gain, a)
+    np.testing.assert_array_equal(snap.confidence, c)
+    assert snap.model is before.model                # no copy of the model for new gains
