@@ -204,8 +204,9 @@ class LearnerLoop:
             # the same model with newer gains: only they travel (the node swaps them in)
             snap = L.snapshot(variance=self.variance, frozen=True)
             if snap is not None:
-                self.out.send(('gains', snap.version, snap.model_weight, snap.prior_gain,
-                               snap.confidence))
+                self.out.send(('gains', snap.version, {
+                    'model_weight': snap.model_weight, 'prior_gain': snap.prior_gain,
+                    'confidence': snap.confidence}))
             self.sent_gains, self.gains_at = L.gains_seq, now
         if self.waits and self._settled():
             self.out.send(('status', self._status()))        # arrives before the reply
@@ -351,3 +352,22 @@ def child_main(cfg: dict, cmd, out, lock, ring_info, init, nice: int, variance: 
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     got = lower_priority(sched, nice)
     LearnerLoop(cfg, cmd, out, lock, ring_info, init, variance, residuals, got).run()
+
+
+def raise_reply(what: str) -> None:
+    """Raise a command's 'ValueError: ...' or 'RuntimeError: ...' reply as that type."""
+    kind, _, text = what.partition(': ')
+    raise (RuntimeError if kind == 'RuntimeError' else ValueError)(
+        text if kind in ('ValueError', 'RuntimeError') else what)
+
+
+def describe_exit(code) -> str:
+    """Say how a learner process ended, from its exit code."""
+    if code is None:
+        return 'no exit status'
+    if code < 0:
+        try:
+            return f'killed by {signal.Signals(-code).name}'
+        except ValueError:
+            return f'killed by signal {-code}'
+    return f'exit code {code}'

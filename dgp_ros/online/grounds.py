@@ -52,6 +52,7 @@ one sample's weight at a time, so the published force has no step when they chan
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Optional
 
@@ -300,6 +301,34 @@ class SkillMixin:
         self._skill.note(target, u, p, full, cons, stamp)
         self._gains_seq += 1
         return self._skill.surprise
+
+    @property
+    def gains_seq(self) -> int:
+        """Return a number that changes whenever the gains do (every scored sample)."""
+        return self._gains_seq
+
+    def snapshot_gains(self) -> dict:
+        """
+        Return the snapshot's gains fields as they are now (locked by the caller).
+
+        A frozen model's weight is None: it answers exactly as saved (switch.py).
+        """
+        weight, gain, conf = self.skill_gains()
+        return {'model_weight': weight if self.config.learning else None, 'prior_gain': gain,
+                'confidence': conf}
+
+    def _with_gains(self, snap):
+        """
+        Return ``snap`` carrying the gains as they are now (locked by the caller).
+
+        The cached snapshot is returned as it is while no sample moved the gains; otherwise a
+        copy of its fields (not of its model) with the new gains: a sample the buffer skips
+        moves the gains without a new version.
+        """
+        if snap is self._snap and self._snap_gains == self._gains_seq:
+            return snap
+        self._snap_gains = self._gains_seq
+        return dataclasses.replace(snap, **self.snapshot_gains())
 
     def skill_gains(self):
         """Return (model weight, prior gain, confidence), (N,) each; Nones before any sample."""

@@ -105,9 +105,7 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
         self._rmax = None                  # largest |residual| learned per joint (structure.py)
         self._selector = Selector()
         self._skill = None                # one-step skill of model and prior (grounds.py)
-        # changes whenever the gains do (every scored sample): a snapshot of the same version
-        # then carries the new gains (``snapshot``; a learner process sends them alone)
-        self._gains_seq = getattr(self, '_gains_seq', 0) + 1
+        self._gains_seq = getattr(self, '_gains_seq', 0) + 1   # gains_seq (grounds.py)
         self._seq = 0                     # samples ever added (orders the catch-up)
         self._reset_absorber(self.config.buffer_size)
         # (seq, qd, tau, answer before learning) added while a refit runs; only the newest
@@ -158,11 +156,6 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
             if self._buf is None:
                 return np.zeros((0, self._N or 0)), np.zeros((0, self._N or 0))
             return self._buf.arrays()
-
-    @property
-    def gains_seq(self) -> int:
-        """Return a number that changes whenever the snapshot's gains would (grounds.py)."""
-        return self._gains_seq
 
     def refit_running(self) -> bool:
         t = self._thread
@@ -342,11 +335,8 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
             s = self._snap
             if s is not None and s.version == self._version and \
                     (s.frozen, s.variance) == (frozen, variance or not frozen):
-                if self._snap_gains != self._gains_seq:
-                    # the same model with the gains earned since: no copy of the model
-                    s = self._snap = dataclasses.replace(s, **self._snapshot_gains())
-                    self._snap_gains = self._gains_seq
-                return s
+                self._snap = self._with_gains(s)       # the gains earned since, if any
+                return self._snap
             mean, std = self._fitted_prior()
             model = self._model
             if model is not None and model.posterior_.structure.has_damping:
@@ -361,21 +351,13 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
                 model.certificate().guarantee == 'psd'
             if model is not None and frozen:
                 model = model.snapshot(variance=variance)
-            self._snap = Snapshot(version=self._version, model=model, prior=mean,
-                                  prior_std=std, force_bound=bound, velocity_box=box,
-                                  residual_bound=None if self._rmax is None else
-                                  self._rmax.copy(),
-                                  learned_through=self._last_t, frozen=frozen,
-                                  variance=variance or not frozen, per_joint=per_joint,
-                                  **self._snapshot_gains())
-            self._snap_gains = self._gains_seq
+            self._snap = self._with_gains(Snapshot(
+                version=self._version, model=model, prior=mean, prior_std=std,
+                force_bound=bound, velocity_box=box,
+                residual_bound=None if self._rmax is None else self._rmax.copy(),
+                learned_through=self._last_t, frozen=frozen, variance=variance or not frozen,
+                per_joint=per_joint))
             return self._snap
-
-    def _snapshot_gains(self) -> dict:
-        """Return the snapshot's gains fields (locked); a frozen model's weight is None."""
-        weight, gain, conf = self.skill_gains()
-        return {'model_weight': weight if self.config.learning else None, 'prior_gain': gain,
-                'confidence': conf}
 
     # ------------------------------------------------------------------ housekeeping
     def reset(self) -> None:

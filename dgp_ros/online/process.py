@@ -34,7 +34,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .child import child_main, SCHED_CHOICES
+from .child import child_main, describe_exit, raise_reply, SCHED_CHOICES
 from .config import EstimatorConfig
 from .ring import SampleRing
 from .snapshot import SwapLog
@@ -187,8 +187,10 @@ class LearnerProcess:
             kind = msg[0]
             if kind == 'snapshot':
                 self._install(msg[1], received)
-            elif kind == 'gains':
-                self._install_gains(*msg[1:])
+            elif kind == 'gains':           # the same model, with the gains earned since
+                snap = self._snap
+                if snap is not None and snap.version == msg[1]:
+                    self._snap = dataclasses.replace(snap, **msg[2])
             elif kind == 'status':
                 self._status = msg[1]
                 ring = self._ring
@@ -208,7 +210,7 @@ class LearnerProcess:
         if self._closing or proc is not self._proc:
             return
         code = proc.exitcode
-        self.exit_reason = (f'learner process died ({_describe_exit(code)}); restarted from '
+        self.exit_reason = (f'learner process died ({describe_exit(code)}); restarted from '
                             'the last snapshot')
         with self._reply_cv:                 # nobody waits forever on a dead child
             for i in list(self._replies):
@@ -239,13 +241,6 @@ class LearnerProcess:
         self._snap = snap
         if snap is not None:
             self.swaps.note(snap.version, received, time.perf_counter() - t0)
-
-    def _install_gains(self, version: int, model_weight, prior_gain, confidence) -> None:
-        """Swap in the snapshot with the gains the learner earned since (same model)."""
-        snap = self._snap
-        if snap is not None and snap.version == version:
-            self._snap = dataclasses.replace(snap, model_weight=model_weight,
-                                             prior_gain=prior_gain, confidence=confidence)
 
     def _call(self, kind: str, *args, timeout: Optional[float] = None):
         """Send a command and wait for its reply: (ok, payload); (False, why) on a timeout."""
@@ -411,12 +406,12 @@ class LearnerProcess:
     def check_reconfigure(self, config: EstimatorConfig) -> None:
         ok, why = self._call('check', dataclasses.asdict(config))
         if not ok:
-            _raise(why)
+            raise_reply(why)
 
     def reconfigure(self, config: EstimatorConfig) -> str:
         ok, what = self._call('reconfigure', dataclasses.asdict(config))
         if not ok:
-            _raise(what)
+            raise_reply(what)
         self.config = config
         what, self.joint_names_, self.needs_position = what
         return what
@@ -428,7 +423,7 @@ class LearnerProcess:
         if ok:
             return what
         if what.startswith(('ValueError: ', 'RuntimeError: ')):
-            _raise(what)
+            raise_reply(what)
         from .config import check_model_path
         if not path:
             raise ValueError('no path given and model_path is not set')
@@ -497,21 +492,3 @@ def _grow_pipe(conn) -> None:
         fcntl.fcntl(conn.fileno(), getattr(fcntl, 'F_SETPIPE_SZ', 1031), PIPE_BYTES)
     except (OSError, ImportError, ValueError):
         pass                                # the OS's default size
-
-
-def _raise(what: str) -> None:
-    """Raise the child's 'ValueError: ...' / 'RuntimeError: ...' reply here, as that type."""
-    kind, _, text = what.partition(': ')
-    raise (RuntimeError if kind == 'RuntimeError' else ValueError)(
-        text if kind in ('ValueError', 'RuntimeError') else what)
-
-
-def _describe_exit(code) -> str:
-    if code is None:
-        return 'no exit status'
-    if code < 0:
-        try:
-            return f'killed by {signal.Signals(-code).name}'
-        except ValueError:
-            return f'killed by signal {-code}'
-    return f'exit code {code}'
