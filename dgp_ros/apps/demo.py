@@ -119,30 +119,43 @@ def _synthetic_publisher(node, rate_hz: float, duration_s: float, rtf: float):
 
 
 class _FirstPart:
-    """Asks the estimator to save its model once the flight reaches ``--held-out-after``."""
+    """
+    Asks the estimator to save its model once the flight reaches ``--held-out-after``.
+
+    A save that fails (no model trained yet: a slow or loaded machine) is asked again every
+    ``RETRY_S`` of wall time; the split is where the save succeeded, and the summary says so.
+    """
+
+    RETRY_S = 0.5
 
     def __init__(self, node, args):
         from std_srvs.srv import Trigger
         self.args, self.req = args, Trigger.Request()
         self.client = node.create_client(Trigger, '/dgp_estimator/save_model')
         self.future, self.split_s = None, None
+        self.retry_at, self.failed = 0.0, 0
 
     def poll(self, t_sim: float) -> None:
         """Call ``~/save_model`` at ``--held-out-after`` s; keep the file it wrote."""
-        if self.future is None and t_sim >= self.args.held_out_after and \
+        if self.future is None and self.split_s is None and \
+                t_sim >= self.args.held_out_after and time.monotonic() >= self.retry_at and \
                 self.client.service_is_ready():
             self.future = self.client.call_async(self.req)
         elif self.future is not None and self.split_s is None and self.future.done():
-            r = self.future.result()
-            self.split_s = t_sim        # the saved model learned nothing stamped after this
+            r, self.future = self.future.result(), None
             if r is not None and r.success:
                 import shutil
                 shutil.copyfile(self.args.model_path, self.args.first_part)
+                self.split_s = t_sim    # the saved model learned nothing stamped after this
                 print(f'[demo] the model of the first {t_sim:.1f} s saved for the held-out '
                       'score', flush=True)
-            else:
-                print(f'[demo] ~/save_model failed: {getattr(r, "message", "no answer")}',
-                      flush=True)
+                return
+            if not self.failed:
+                print(f'[demo] ~/save_model failed at {t_sim:.1f} s: '
+                      f'{getattr(r, "message", "no answer")}; asking again every '
+                      f'{self.RETRY_S:g} s', flush=True)
+            self.failed += 1
+            self.retry_at = time.monotonic() + self.RETRY_S
 
 
 def held_out(model_path: str, split_s: float, res: dict) -> Optional[dict]:
@@ -283,15 +296,16 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
         print(f'end-to-end latency (measurement -> answer, via DDS): median {lat["median"]:.2f} '
               f'ms, p99 {lat["p99"]:.2f} ms')
     if diag:
-        def g(k, f=str):
+        def g(k, scale=1.0, unit=''):
+            """Format the number under ``k`` times ``scale`` (2 decimals), else 'none yet'."""
             try:
-                return f(diag.get(k, ''))
+                return f'{scale * float(diag.get(k, "")):.2f}{unit}'
             except (TypeError, ValueError):
-                return diag.get(k, '')
-        print(f'estimator processing latency: median {1e3 * g("latency_median_s", float):.2f} ms, '
-              f'p99 {1e3 * g("latency_p99_s", float):.2f} ms')
+                return 'none yet'      # (no refit finished: 'None' on /diagnostics)
+        print(f'estimator processing latency: median {g("latency_median_s", 1e3, " ms")}, '
+              f'p99 {g("latency_p99_s", 1e3, " ms")}')
         print(f'refits ok {diag.get("refits_ok")}, failed {diag.get("refits_failed")}, last '
-              f'duration {g("last_refit_duration_s", float):.2f} s; certified '
+              f'duration {g("last_refit_duration_s", 1.0, " s")}; certified '
               f'{diag.get("certified")} ({diag.get("method")}, margin {diag.get("margin")}); '
               f'buffer {diag.get("buffer_fill")}/{diag.get("buffer_size")}, skipped '
               f'(near-duplicates) {diag.get("samples_skipped")}, rate-limited '
