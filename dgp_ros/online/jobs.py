@@ -56,7 +56,8 @@ class JobRunner:
         samples appended meanwhile are taken at those. So a learned sample beyond the box of the
         last optimization's velocities (grown by ``NOVELTY_MARGIN`` of its range) that the model
         answered badly (``surprise``: its one-step error over its recent RMS error, beyond
-        ``NOVELTY_SURPRISE``; ``grounds``) makes the next refit one that re-learns them, at most
+        ``NOVELTY_SURPRISE``, where the error is more than ``grounds.SURPRISE_SIGNAL`` of the
+        force's RMS) makes the next refit one that re-learns them, at most
         every ``NOVELTY_GAP_S`` of learning time (``novelty_refits`` on /diagnostics). A model
         that extrapolates well into new territory is left alone: an arm's first cycle leaves
         the box all the time.

@@ -171,3 +171,27 @@ def test_new_territory_answered_badly_asks_for_an_optimizing_refit():
 def test_a_changed_law_inside_the_box_is_left_to_the_clock():
     law = lambda q, t: (1.0 + (t >= 6.0) * 4.0 * q ** 2) * q        # noqa: E731
     assert _stream(OnlineEstimator(_cfg()), law, False) == 0
+
+
+def test_a_surprise_counts_only_where_the_error_matters_against_the_force():
+    """Far above the model's recent error but small against the force: no new territory."""
+    from dgp_ros.online.grounds import SURPRISE_SIGNAL
+    rng = np.random.default_rng(3)
+
+    def skill():
+        s = Skill(N)
+        for i in range(300):               # forces of RMS ~1, the model right to ~1e-3
+            t = rng.normal(size=N)
+            s.note(t, t + 1e-3 * rng.normal(size=N), 0.5 * t, stamp=0.01 * i)
+        return s
+    t = np.ones(N)
+    assert 0.05 < SURPRISE_SIGNAL < 0.3
+    s = skill()
+    s.note(t, t + 0.05, 0.5 * t, stamp=3.0)     # 50x the model's recent error, 5 % of the force
+    assert s.surprise == 0.0
+    s = skill()
+    s.note(t, t + 0.3, 0.5 * t, stamp=3.0)      # 30 % of the force
+    assert s.surprise > 2.5
+    # and a law that changes beyond the box by far more than that still asks for a refit
+    law = lambda q, t: (1.0 + (t >= 6.0) * 4.0 * q ** 2) * q        # noqa: E731
+    assert _stream(OnlineEstimator(_cfg()), law, True) >= 1
