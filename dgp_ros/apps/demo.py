@@ -133,7 +133,7 @@ class _FirstPart:
         self.args, self.req = args, Trigger.Request()
         self.client = node.create_client(Trigger, '/dgp_estimator/save_model')
         self.future, self.split_s = None, None
-        self.retry_at, self.failed = 0.0, 0
+        self.retry_at, self.told = 0.0, False
 
     def poll(self, t_sim: float) -> None:
         """Call ``~/save_model`` at ``--held-out-after`` s; keep the file it wrote."""
@@ -150,11 +150,11 @@ class _FirstPart:
                 print(f'[demo] the model of the first {t_sim:.1f} s saved for the held-out '
                       'score', flush=True)
                 return
-            if not self.failed:
+            if not self.told:
                 print(f'[demo] ~/save_model failed at {t_sim:.1f} s: '
                       f'{getattr(r, "message", "no answer")}; asking again every '
                       f'{self.RETRY_S:g} s', flush=True)
-            self.failed += 1
+                self.told = True
             self.retry_at = time.monotonic() + self.RETRY_S
 
 

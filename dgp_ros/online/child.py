@@ -20,6 +20,7 @@ import traceback
 import numpy as np
 
 from .config import EstimatorConfig
+from .grounds import GAINS
 from .learner import Learner
 from .plan import PlanCache
 from .ring import SampleRing
@@ -127,9 +128,7 @@ class LearnerLoop:
                     break
                 busy = self._samples()
                 if not busy:
-                    # a caller waiting for the learner to settle has paused the stream
-                    self.learner.poll(idle=bool(self.waits) or
-                                      time.monotonic() - self.sample_at >= self.PAUSE_S)
+                    self.learner.poll(idle=time.monotonic() - self.sample_at >= self.PAUSE_S)
                 self._publish()
                 if not busy:
                     self.cmd.poll(self.IDLE_WAIT_S)
@@ -204,9 +203,7 @@ class LearnerLoop:
             # the same model with newer gains: only they travel (the node swaps them in)
             snap = L.snapshot(variance=self.variance, frozen=True)
             if snap is not None:
-                self.out.send(('gains', snap.version, {
-                    'model_weight': snap.model_weight, 'prior_gain': snap.prior_gain,
-                    'confidence': snap.confidence}))
+                self.out.send(('gains', snap.version, {k: getattr(snap, k) for k in GAINS}))
             self.sent_gains, self.gains_at = L.gains_seq, now
         if self.waits and self._settled():
             self.out.send(('status', self._status()))        # arrives before the reply
@@ -236,7 +233,9 @@ class LearnerLoop:
         gains.
         """
         L = self.learner
-        L.poll(idle=True)               # what became due since this round's poll starts now
+        # a caller waiting for the learner to settle has paused the stream; what became due
+        # since this round's poll starts now
+        L.poll(idle=True)
         if L.refit_running() or L.version != self.sent_version or \
                 L.gains_seq != self.sent_gains:
             return False

@@ -17,32 +17,17 @@ import threading
 import time
 
 import numpy as np
+from test_online_appends import cfg as _appends_cfg, NAMES, path, true_tau
 
-from dgp_ros.online import EstimatorConfig, OnlineEstimator
+from dgp_ros.online import OnlineEstimator
 from dgp_ros.online.child import LearnerLoop
 from dgp_ros.online.learner import Learner
 from dgp_ros.online.ring import SampleRing
 
-NAMES = ['a', 'b', 'c']
-
-
-def true_tau(q):
-    """Return a passive nonlinear damping force."""
-    q = np.asarray(q, float)
-    return np.array([2.0 + np.sin(q[0]), 1.0 + 0.5 * q[1] ** 2, 0.5 + 0.1 * abs(q[2])]) * q
-
-
-def path(t):
-    """Return velocities that keep reaching new values (a drift plus a wobble)."""
-    return np.array([np.sin(0.9 * t) + 0.05 * t, 0.8 * np.cos(0.4 * t), 1.0 + 0.1 * t])
-
 
 def cfg(**kw):
-    base = {'model': 'full', 'passivity': 'projected', 'buffer_size': 60, 'min_samples': 10,
-            'refit_mode': 'async', 'refit_period_s': 0.0, 'selection': 'all',
-            'prior': 'viscous', 'bias': False, 'optimize_every_n_refits': 0}
-    base.update(kw)
-    return EstimatorConfig(**base)
+    """Return the appends tests' configuration, refitting beside the answers at every chance."""
+    return _appends_cfg(**dict({'refit_mode': 'async', 'refit_period_s': 0.0}, **kw))
 
 
 def _row(t):
