@@ -18,12 +18,14 @@ from typing import Optional
 
 import numpy as np
 
-from ._validation import as_box, as_matrix, as_pair, in_chunks
+from ._params import check_params
+from ._validation import as_matrix, as_pair, in_chunks
+from .blend import Grounds
 from .hyper import (apply_fixed_noise, hyper_from_params, initial_hyper, learn_hyper,
                     MIN_NOISE_VAR, scales)
 from .kernels import KINDS, Structure
-from .means import make_mean, PriorMean, PRIORS
-from .passivity import check_mode, policy_class
+from .means import make_mean
+from .passivity import policy_class
 from .persistence import read_model, rebuild_correction, save_model
 from .policy import Certificate, PolicyOptions
 from .posterior import Posterior
@@ -133,30 +135,7 @@ class _DGP:
 
     def _check_params(self, N: int) -> PolicyOptions:
         """Validate the constructor arguments for N velocities; the policy options."""
-        check_mode(self.passivity, self._kind)
-        w = self.window
-        if w is not None and (isinstance(w, bool) or int(w) != w or w < 1):
-            raise ValueError(f'window must be a positive integer or None, got {w!r}')
-        for name, low in (('n_restarts', 0), ('max_opt_samples', 1), ('max_boxes', 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < low:
-                raise ValueError(f'{name} must be an integer >= {low}, got {v!r}')
-        nf = self.noise_floor
-        if nf is not None and not (isinstance(nf, (int, float)) and 0 < nf <= 1.0):
-            raise ValueError(f'noise_floor must be in (0, 1] or None, got {nf!r}')
-        if not (self.domain_margin >= 0 and self.blend_width > 0):
-            raise ValueError('domain_margin must be >= 0 and blend_width > 0')
-        if not isinstance(self.prior, PriorMean) and self.prior not in PRIORS:
-            raise ValueError(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
-        pw = self.projection_weights
-        if pw is not None:
-            pw = np.asarray(pw, float)
-            if pw.shape != (N,) or np.any(~np.isfinite(pw)) or np.any(pw <= 0):
-                raise ValueError(f'projection_weights must be {N} positive finite numbers')
-        od = self.operating_domain
-        od = None if od is None else as_box(od, N, 'operating_domain')
-        return PolicyOptions(float(self.domain_margin), float(self.blend_width),
-                             int(self.max_boxes), od, pw)
+        return check_params(self, N)
 
     # ------------------------------------------------------------------ fitting
     def fit(self, Qd, Tau, optimize: bool = True, prove: bool = True) -> '_DGP':
@@ -367,14 +346,18 @@ class _DGP:
         """
         Return (tau, var or None, D or None) at Qs, through the policy, in row chunks.
 
-        D is built when asked for or when the policy's ``finalize`` needs it (``needs_damping``);
-        tau comes from the posterior's own prediction (bit-identical to ``predict``) unless D is
-        at hand and that does not matter.
+        D is built when asked for or when the policy's ``finalize`` or the grounds' per-joint
+        blend needs it; tau comes from the posterior's own prediction (bit-identical to
+        ``predict``) unless D is at hand and that does not matter. A model that carries the
+        gains its learner earned (``grounds_``) blends its answers by them (``blend``).
         """
         p = self._check_fitted()
         Q = as_matrix(Qs, 'Qs', p.N)
         pol = self.policy_
-        need_D = p.structure.has_damping and (want_D or pol.needs_damping)
+        g = Grounds.of(getattr(self, 'grounds_', None), p.N) if p.structure.has_damping else None
+        guarantee = pol.cert.guarantee if g is not None else ''
+        need_D = p.structure.has_damping and (want_D or pol.needs_damping or (
+            g is not None and g.per_joint(guarantee)))
 
         def part(Qc):
             Kel = p.element_kernels(Qc)
@@ -385,6 +368,8 @@ class _DGP:
             else:
                 tau, var = p.predict(Qc, w, want_var, Kel)
             tau, D = pol.finalize(p, Qc, tau, D)
+            if g is not None:
+                tau, D = g.apply(p.mean, Qc, tau, D, guarantee)
             return tau, var, D if want_D else None
         return in_chunks(Q, p.n, part, CHUNK_ELEMENTS)
 
@@ -494,6 +479,8 @@ def load_model(path) -> _DGP:
             # pinocchio), through the registry it fills (``persistence``)
             model.correction_ = rebuild_correction(f.correction)
         model.grounds_ = None if f.grounds is None else dict(f.grounds)
+        if model.posterior_.structure.has_damping:
+            Grounds.of(model.grounds_, model.N)     # a malformed record fails here, not later
     except Exception as exc:      # a crafted header: wrong names, types or policy state
         raise ValueError(f'{path}: malformed model file ({type(exc).__name__}: {exc})') \
             from None

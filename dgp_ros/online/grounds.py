@@ -41,7 +41,8 @@ allows: an aircraft's forces (known to 1e-3) earn full weight within a few sampl
 joint torque within tens. The prior's gain takes its first sample as it is (an aircraft's prior
 fitted on one sample answers the next to 1e-4); the model's needs two.
 
-**The blend** (:func:`blend`) keeps every guarantee the answer had. With ``S = diag(sqrt(w))``
+**The blend** (:func:`dgp_ros.gp.blend.blend`, where a saved model applies it too) keeps
+every guarantee the answer had. With ``S = diag(sqrt(w))``
 and ``F = diag((1 - w) a m_d(qd))``, the published damping matrix is ``D' = S D S + F``: where
 ``D``'s symmetric part is positive semi-definite (guarantee ``psd``) so is ``D'`` (a congruence
 plus a non-negative diagonal), and a diagonal ``D`` blends joint by joint,
@@ -58,11 +59,11 @@ from typing import Optional
 
 import numpy as np
 
+from dgp_ros.gp.blend import blend, GAINS
+
 __all__ = ['Skill', 'SkillMixin', 'blend', 'GAINS', 'HALF_LIFE', 'PSEUDO_SAMPLES', 'FULL_GAIN',
            'EVIDENCE_S', 'SURPRISE_SIGNAL']
 
-#: the gains a snapshot and a saved model carry, in ``Skill.gains`` order
-GAINS = ('model_weight', 'prior_gain', 'confidence')
 
 #: learned samples over which the skill is measured (the weight of a sample halves after these)
 HALF_LIFE = 100
@@ -230,34 +231,6 @@ def _round(a) -> list:
     return [None if not math.isfinite(float(v)) else round(float(v), 4) for v in a]
 
 
-def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], prior_diag: np.ndarray,
-          w: np.ndarray, a: np.ndarray, per_joint: bool):
-    """
-    Blend answers toward the fallback (module docstring).
-
-    Q, tau : (k, N) velocities and the model's answers; D : (k, N, N) its damping matrices (None:
-    not computed; then ``per_joint`` must be False); prior_diag : (k, N) ``m_d(Q)`` >= 0; w, a :
-    (N,) the model's weight and the prior's gain. ``per_joint``: the congruence blend (keeps a
-    PSD symmetric part), else one scalar ``min(w)`` per answer (keeps ``q^T tau >= 0`` of a
-    passive answer). Returns (tau', D' or None).
-    """
-    if per_joint and D is not None:
-        s = np.sqrt(w)
-        Db = D * (s[:, None] * s[None, :])
-        idx = np.arange(Q.shape[1])
-        Db[:, idx, idx] += prior_diag * ((1.0 - w) * a)
-        return np.einsum('kij,kj->ki', Db, Q), Db
-    ws = float(np.min(w))
-    f = (1.0 - ws) * a * prior_diag                        # (k, N)
-    tau_b = ws * tau + f * Q
-    Db = None
-    if D is not None:
-        Db = ws * D
-        idx = np.arange(Q.shape[1])
-        Db[:, idx, idx] += f
-    return tau_b, Db
-
-
 class SkillMixin:
     """
     Mixin of :class:`~dgp_ros.online.learner.Learner`: its :class:`Skill` (module docstring).
@@ -322,11 +295,11 @@ class SkillMixin:
         """
         Return the snapshot's gains fields as they are now (locked by the caller).
 
-        A frozen model's weight is None: it answers exactly as saved (switch.py).
+        With learning off the gains stay as they were when it stopped (nothing is scored), and
+        the answers are blended by them as the saved model's own ``predict`` is (switch.py).
         """
         weight, gain, conf = self.skill_gains()
-        return {'model_weight': weight if self.config.learning else None, 'prior_gain': gain,
-                'confidence': conf}
+        return {'model_weight': weight, 'prior_gain': gain, 'confidence': conf}
 
     def _with_gains(self, snap):
         """

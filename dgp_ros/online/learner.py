@@ -463,6 +463,9 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
             raise ValueError(f'{source or "the"} model passivity {model.passivity!r} != '
                              f'{cfg.passivity!r}')
         model.posterior_ = model.posterior_.ensure_factors()    # a snapshot is predict-only
+        # the gains a file carries are the learner's to apply (restore_gains): the served model
+        # answers unblended, the snapshot blends it once
+        model.grounds_ = None
         proof = prove(model, cfg.passivity)           # re-proves: never trusts the file
         with self._lock:
             self.health.proof_done(proof)
@@ -479,6 +482,7 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
     def _load(self, path: str) -> None:
         try:
             model = self._loader(path)
+            g = getattr(model, 'grounds_', None) or {}
             self.adopt(model, 'file')
         except Exception as exc:
             self.load_error = f'could not use {path}: {exc}'
@@ -486,7 +490,6 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
         # a model file answers with the gains it was saved with (a file without them, at full
         # weight: the user gave it); one-step scores then move them as a learned model's
         N = model.X_train_.shape[1]
-        g = getattr(model, 'grounds_', None) or {}
         self.restore_gains(*(g.get(k, np.ones(N)) for k in GAINS))
 
 
