@@ -35,6 +35,8 @@ def check_params(model, N: int):
         raise ValueError('domain_margin must be >= 0 and blend_width > 0')
     if not isinstance(model.prior, PriorMean) and model.prior not in PRIORS:
         raise ValueError(f"prior must be one of {', '.join(PRIORS)}, got {model.prior!r}")
+    if model.elements not in ('all', 'auto'):
+        raise ValueError(f"elements must be 'all' or 'auto', got {model.elements!r}")
     pw = model.projection_weights
     if pw is not None:
         pw = np.asarray(pw, float)

@@ -117,7 +117,18 @@ def _sf2_floor(structure: Structure, X: np.ndarray, e: int) -> float:
     return max(1e-8, PERSISTENT_SF2 * q * q)
 
 
-def _bounds(structure: Structure, X: np.ndarray, m: int, noise_floor: float = MIN_NOISE_VAR):
+def persistent(structure: Structure, X: np.ndarray, e: int) -> bool:
+    """Tell whether element e's feature stays away from zero in X (``_sf2_floor``)."""
+    return _sf2_floor(structure, X, e) >= PERSISTENT_SF2 * PERSISTENT_LEVEL ** 2
+
+
+#: a feature whose ``PERSISTENT_QUANTILE`` quantile is at least this fraction of its RMS is
+#: persistent (never near zero: ``persistent``)
+PERSISTENT_LEVEL = 0.3
+
+
+def _bounds(structure: Structure, X: np.ndarray, m: int, noise_floor: float = MIN_NOISE_VAR,
+            rows: Optional[Sequence[int]] = None):
     """
     L-BFGS-B bounds of output m's parameter vector (see ``LmlObjective``).
 
@@ -125,11 +136,12 @@ def _bounds(structure: Structure, X: np.ndarray, m: int, noise_floor: float = MI
     data spread; the absolute floor 1e-2 (1 % of the RMS velocity) keeps a fit on a short stretch
     of data from learning lengthscales nothing later can be compared with. The signal variance of
     an element whose feature stays away from zero has a floor (``_sf2_floor``). The noise variance
-    is at least ``noise_floor`` (standardized units).
+    is at least ``noise_floor`` (standardized units). ``rows``: the output's elements that are
+    optimized (default all of them).
     """
     spread = np.std(X, axis=0)
     spread = np.where(spread > 1e-6, spread, 1.0)
-    rows = structure.rows[m]
+    rows = structure.rows[m] if rows is None else rows
     b = [(math.log(_sf2_floor(structure, X, e)), math.log(1e2)) for e in rows]
     for _ in rows:
         for d in range(X.shape[1]):
@@ -356,6 +368,10 @@ def _best(fun, starts, bounds, maxiter, count, ftol=None):
     return best
 
 
+#: a lengthscale at or above this is pinned (not learned): the element ignores that velocity
+#: (``select``: an output's own element that depends on its own velocity alone)
+PINNED_LOG_LS = math.log(1e9)
+
 #: floor of log sf2 while the untied parameters are refined after the tied warm-up, so that an
 #: element the warm-up switched off (sf2 -> 0) can come back
 UNTIE_LOG_SF2_FLOOR = -4.6
@@ -382,8 +398,10 @@ def learn_hyper(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarr
     reached a lower likelihood on the simulated arm (docs/BENCHMARKS.md). ``noise_floor``: the
     least noise variance, standardized units (``MIN_NOISE_VAR`` by default).
 
-    Returns ``(hyper, info)``; ``info`` holds the LML per output (standardized units) and the
-    number of objective evaluations.
+    Elements switched off (``log_sf2 = -inf``) stay off and are not optimized; lengthscales at
+    ``PINNED_LOG_LS`` or above stay as they are (the element ignores that velocity). Returns
+    ``(hyper, info)``; ``info`` holds the LML per output (standardized units) and the number of
+    objective evaluations.
     """
     hp = hp.copy()
     rng = np.random.default_rng(random_state)
@@ -396,7 +414,11 @@ def learn_hyper(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarr
     N = X.shape[1]
     jobs = []
     for m in range(structure.N):
-        rows = list(structure.rows[m])
+        # an element switched off (log sf2 = -inf: ``select``, or the paper's certificate)
+        # stays off; an output with none left is its prior mean alone: nothing to learn
+        rows = [e for e in structure.rows[m] if np.isfinite(hp.log_sf2[e])]
+        if not rows:
+            continue
         theta0 = np.concatenate([hp.log_sf2[rows], hp.log_ls[rows].ravel(), [hp.log_sn2[m]]])
         kicks = [rng.uniform(-1.5, 1.5, theta0.size) for _ in range(0 if warm else n_restarts)]
         jobs.append((m, rows, theta0, kicks))
@@ -406,7 +428,12 @@ def learn_hyper(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarr
         Em = len(rows)
         elems = [structure.elems[e][1] for e in rows]
         fun = LmlObjective(X, Rall[:, m], elems, N)
-        bounds = _bounds(structure, X, m, noise_floor)
+        bounds = _bounds(structure, X, m, noise_floor, rows)
+        pinned = np.flatnonzero(theta0[Em:-1] >= PINNED_LOG_LS - 1e-9)
+        for i in pinned:                # a pinned lengthscale stays where it is
+            bounds[Em + i] = (theta0[Em + i], theta0[Em + i])
+            for k in kicks:
+                k[Em + i] = 0.0
         if fix_noise:
             bounds[-1] = (theta0[-1], theta0[-1])
             for k in kicks:

@@ -29,6 +29,7 @@ from .passivity import policy_class
 from .persistence import read_model, rebuild_correction, save_model
 from .policy import Certificate, PolicyOptions
 from .posterior import Posterior
+from .select import select_elements
 
 __all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class', 'load_model']
 
@@ -83,6 +84,9 @@ class _DGP:
     warm_start : bool
         ``fit(optimize=True)`` refines the hyper-parameters it starts from (the last fit's, or
         ``hyperparams``) without random restarts: the online estimator's re-learning.
+    elements : 'all' | 'auto'
+        Every element the kind has (the paper's), or per output none / its diagonal / also its
+        couplings, chosen at each optimizing fit on the newest rows held out (``select``).
 
     Fitted attributes: ``posterior_``, ``policy_``, ``mean_`` (the prior), ``hyperparams_``,
     ``bias_``, ``n_samples_``, ``X_train_``, ``Y_train_``, ``mean_diag_``, ``fit_info_``.
@@ -96,7 +100,8 @@ class _DGP:
                  blend_width: float = 0.1, max_boxes: int = 50000, projection_weights=None,
                  hyperparams: Optional[dict] = None, random_state: int = 0,
                  operating_domain=None, prior: str = 'viscous', bias: bool = False,
-                 warm_start: bool = False, noise_floor: Optional[float] = None):
+                 warm_start: bool = False, noise_floor: Optional[float] = None,
+                 elements: str = 'all'):
         self.passivity = passivity
         self.noise = noise
         self.noise_floor = noise_floor
@@ -113,6 +118,7 @@ class _DGP:
         self.prior = prior
         self.bias = bias
         self.warm_start = warm_start
+        self.elements = elements
 
     # ------------------------------------------------------------------ parameters
     @classmethod
@@ -140,9 +146,7 @@ class _DGP:
     # ------------------------------------------------------------------ fitting
     def fit(self, Qd, Tau, optimize: bool = True, prove: bool = True) -> '_DGP':
         """
-        Fit to samples Qd, Tau (n, N).
-
-        Returns self.
+        Fit to samples Qd, Tau (n, N) (rows oldest first for ``elements='auto'``); return self.
 
         optimize=True: the prior mean, the standardization and the kernel hyper-parameters are
         (re)estimated (log marginal likelihood, analytic gradients, L-BFGS-B with restarts),
@@ -179,12 +183,7 @@ class _DGP:
             else:
                 hp = initial_hyper(structure, Qd, resid, Tau, self.noise)
             if optimize:
-                hp, info = learn_hyper(structure, hp, Qd, resid, fix_noise=self.noise is not None,
-                                       n_restarts=int(self.n_restarts),
-                                       max_samples=int(self.max_opt_samples),
-                                       random_state=int(self.random_state),
-                                       warm=bool(self.warm_start) and start is not None,
-                                       noise_floor=float(self.noise_floor or MIN_NOISE_VAR))
+                hp, info = self._learn(structure, hp, Qd, resid, Tau, start is not None)
         else:
             hp, mean = start
         policy = policy_class(self.passivity)(options)
@@ -195,6 +194,19 @@ class _DGP:
         self.policy_ = policy
         self.fit_info_ = dict(info, fit_seconds=time.perf_counter() - t0)
         return self
+
+    def _learn(self, structure, hp, Qd, resid, Tau, started: bool):
+        """Learn the hyper-parameters (and with ``elements='auto'`` the elements): (hp, info)."""
+        kw = dict(fix_noise=self.noise is not None, n_restarts=int(self.n_restarts),
+                  max_samples=int(self.max_opt_samples), random_state=int(self.random_state),
+                  noise_floor=float(self.noise_floor or MIN_NOISE_VAR))
+        warm = bool(self.warm_start) and started     # refine the last optimum, no restarts
+        if self.elements == 'auto':
+            fresh = initial_hyper(structure, Qd, resid, Tau, self.noise)
+            picked = select_elements(structure, hp, Qd, resid, fresh, warm, **kw)
+            if picked is not None:
+                return picked
+        return learn_hyper(structure, hp, Qd, resid, warm=warm, **kw)
 
     def _start_hyper(self, structure):
         """(Hyper, mean) to start from: the last fit's, else the ``hyperparams`` argument."""
@@ -346,10 +358,10 @@ class _DGP:
         """
         Return (tau, var or None, D or None) at Qs, through the policy, in row chunks.
 
-        D is built when asked for or when the policy's ``finalize`` or the grounds' per-joint
-        blend needs it; tau comes from the posterior's own prediction (bit-identical to
-        ``predict``) unless D is at hand and that does not matter. A model that carries the
-        gains its learner earned (``grounds_``) blends its answers by them (``blend``).
+        D is built when asked for or when the policy or the grounds' per-joint blend needs it; tau
+        comes from the posterior's prediction (bit-identical to ``predict``) unless D is at hand
+        and that does not matter. A model carrying its learner's gains (``grounds_``) blends by
+        them (``blend``).
         """
         p = self._check_fitted()
         Q = as_matrix(Qs, 'Qs', p.N)

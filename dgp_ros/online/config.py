@@ -29,6 +29,11 @@ PARAMS = {p.name: p for p in (
     ParamSpec('model', 'str', 'full', 'damping model: Full-D-GP, Diag-D-GP or the ARD-GP baseline',
               choices=KINDS),
     ParamSpec('passivity', 'str', 'certified', describe_modes(), choices=PASSIVITY_MODES),
+    ParamSpec('elements', 'str', 'auto', 'which elements of D each joint keeps: auto (at each '
+              'hyper-parameter refit, by the error on the newest quarter of the buffer held '
+              'out: none, the parametric part alone; its diagonal element; or also its '
+              'couplings to the other joints, only where they predict better) or all (every '
+              'element of the model kind: the paper\'s Full-D-GP)', choices=('auto', 'all')),
     ParamSpec('prior', 'str', 'auto', 'prior mean of the damping: auto (the structure is chosen '
               'from the data by cross-validation: friction family, offsets, the conservative '
               'correction of the rigid-body model; fitted on the whole history), or fixed: '
@@ -114,6 +119,7 @@ class EstimatorConfig:
 
     model: str = PARAMS['model'].default
     passivity: str = PARAMS['passivity'].default
+    elements: str = PARAMS['elements'].default
     prior: str = PARAMS['prior'].default
     bias: bool = PARAMS['bias'].default
     noise_floor: float = PARAMS['noise_floor'].default
@@ -232,6 +238,7 @@ class EstimatorConfig:
         window.
         """
         kw = {'passivity': self.passivity, 'window': None, 'noise_floor': self.noise_floor,
+              'elements': self.elements,
               'prior': 'viscous' if self.prior == 'auto' else self.prior,
               'bias': bool(self.bias) and self.prior != 'auto'}
         if self.operating_domain and self.passivity == 'certified':

@@ -359,7 +359,7 @@ class LearnerReport:
                 'structure_scores': dict(self.health.structure_scores),
                 'correction_basis': self.health.correction_basis,
                 'corrections_refused': self.health.corrections_refused,
-                'offsets': (None if self._param is None or not self._param.offsets else
+                'offsets': (None if self._param is None or not np.any(self._param.offsets) else
                             [round(float(b), 6) for b in self._param.bias]),
                 'warnings': self._warnings(),
             }

@@ -42,8 +42,9 @@ class Buffer:
     ``policy='recency'``: a FIFO (the oldest row is replaced). ``policy='coverage'``: once full,
     a new row replaces one of the two closest rows (velocity distance in ``scale`` units, the
     one whose second-nearest neighbour is closer), so the buffer keeps the velocities that were
-    visited, not the last seconds; O(capacity N) per row with a cached distance matrix. Reads
-    (``arrays``) are in slot order for coverage (the fit does not depend on the order).
+    visited, not the last seconds; O(capacity N) per row with a cached distance matrix.
+    ``arrays`` reads the rows oldest first (the fit holds the newest out to choose the
+    elements of D: ``gp.select``).
     Extras: the raw residual (N,) and the correction columns (N, C) of each row, kept so that
     the targets can be recomputed when the parametric part is refitted (``retarget``).
     """
@@ -57,6 +58,8 @@ class Buffer:
         self._y: Optional[np.ndarray] = None
         self._start = 0
         self.size = 0
+        self._age = np.zeros(self.capacity, np.int64)   # when each slot's row came (a count)
+        self._count = 0
         self._d: Optional[np.ndarray] = None       # coverage: distances between slots
         self.scale: Optional[np.ndarray] = None    # coverage: velocity scale (N,), set when full
 
@@ -71,6 +74,8 @@ class Buffer:
             i = self._start
             self._start = (self._start + 1) % self.capacity
         self._q[i], self._t[i] = q, t
+        self._count += 1
+        self._age[i] = self._count
         if extra is not None:
             self._store_extra(i, *extra)
         if self.policy == 'coverage' and self._d is not None:
@@ -161,8 +166,10 @@ class Buffer:
         return (self._q[:n], self._t[:n]) if n < self.capacity else (self._q, self._t)
 
     def arrays(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Return copies of (Qd, Tau), (size, N) each, oldest first (slot order for coverage)."""
+        """Return copies of (Qd, Tau), (size, N) each, oldest first."""
         idx = (self._start + np.arange(self.size)) % self.capacity
+        if self.policy == 'coverage':
+            idx = idx[np.argsort(self._age[idx], kind='stable')]
         return self._q[idx].copy(), self._t[idx].copy()
 
     @classmethod

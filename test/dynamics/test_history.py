@@ -41,7 +41,7 @@ def test_selection_finds_friction_and_correction_and_not_offsets():
     _feed(hist, t, q, qd, r)
     fit = hist.select()
     assert fit.family in ('friction', 'friction+stribeck') and fit.conservative, fit.label()
-    assert not fit.offsets, fit.scores
+    assert not np.any(fit.offsets), fit.scores
     assert fit.scores and min(fit.scores.values()) < 0.05
     # the split: friction in the passive prior, the potential force in the correction
     f_hat = fit.friction_mean().force(qd)
@@ -55,14 +55,14 @@ def test_offsets_are_chosen_when_they_are_real_and_refused_without_a_rigid_body_
     b = np.array([0.5, -0.4, 0.3])
     t, q, qd, r, basis, *_ = _arm(offsets=b, cons_scale=0.0)
     fit = LongHistory(3, None).select()      # nothing learned yet: the default, no offsets
-    assert not fit.offsets
+    assert not np.any(fit.offsets)
     hist = LongHistory(3, None)
     _feed(hist, t, q, qd, r)
     fit = hist.select()
-    assert fit.offsets and np.allclose(fit.bias, b, atol=0.15), (fit.label(), fit.bias)
+    assert np.all(fit.offsets) and np.allclose(fit.bias, b, atol=0.15), (fit.label(), fit.bias)
     hist = LongHistory(3, None, offsets=False)
     _feed(hist, t, q, qd, r)
-    assert not hist.select().offsets
+    assert not np.any(hist.select().offsets)
     assert all(not c[1] for c in hist.candidates())
     assert len(LongHistory(2, None).candidates()) == 2 * len(FAMILIES)
 
@@ -166,5 +166,5 @@ def test_real_panda_selection_beats_friction_alone_held_out():
     sel = hist.select()
     alone = nmse(hist.fit('friction', False, False))
     chosen = nmse(sel)
-    assert sel.conservative and not sel.offsets, sel.label()
+    assert sel.conservative and not np.any(sel.offsets), sel.label()
     assert chosen.mean() < 0.9 * alone.mean(), (chosen, alone)

@@ -30,7 +30,7 @@ def path(t):
 def cfg(**kw):
     base = {'model': 'full', 'passivity': 'projected', 'buffer_size': 60, 'min_samples': 10,
             'refit_mode': 'sync', 'refit_period_s': 3.0, 'selection': 'all', 'prior': 'viscous',
-            'bias': False, 'optimize_every_n_refits': 0}
+            'bias': False, 'optimize_every_n_refits': 0, 'elements': 'all'}
     base.update(kw)
     return EstimatorConfig(**base)
 

@@ -1,0 +1,243 @@
+"""
+Which elements of the damping matrix each output keeps, chosen on held-out samples.
+
+The marginal likelihood that learns the hyper-parameters cannot tell a coupling ``D_mn``
+(``m != n``) the data support from one that only fits the path the data took: along one
+trajectory the joint velocities move together (sums of sines, a repeated task), so an element
+``x_n f_mn(x)`` of another joint's velocity explains what belongs to joint m and extrapolates
+wildly once they move apart. On a real UR10 the Full-D-GP put -89 N m s/rad from wrist 2's
+velocity onto the elbow and predicted 1525 N m on the unseen part of the log where the residual
+stays within 29 N m. The aircraft needs its couplings (lift and drag depend on the angle of
+attack, a velocity that crosses zero) and a 7-joint Panda gains from a few.
+
+So with ``elements='auto'`` every output ``m`` (an independent GP) chooses between
+
+* ``'none'``: no GP element, the prior mean alone (the parametric part; the GP could not show
+  that it adds anything);
+* ``'own'``: its own element ``(m, m)`` as a function of its own velocity alone (a friction
+  curve; the other velocities' lengthscales pinned at ``hyper.PINNED_LOG_LS``): it cannot
+  extrapolate along velocities it does not see;
+* ``'all'``: its own element and the couplings ``(m, n)`` of the model kind, each a function
+  of every velocity (SE-ARD; for a Diag-D-GP its own element so),
+
+by cross-validation: the hyper-parameters of each choice are learned on the older samples and
+the error measured on the newest :data:`HOLDOUT` of them (rows in time order, oldest first: the
+samples a model learned on the past will meet next). A richer choice must cut the held-out error
+by its margin (:data:`MARGINS`), since one held-out stretch is little evidence and the simpler
+model extrapolates better. The chosen elements then keep those hyper-parameters; the others are
+switched off (``log sf2 = -inf``: they contribute nothing, cost nothing and stay off until the
+next selection).
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, LinAlgError
+
+from ._chol import JITTER_STEPS
+from .kernels import Structure
+from .hyper import learn_hyper, persistent as hyper_persistent, PINNED_LOG_LS
+from .posterior import Hyper
+
+__all__ = ['select_elements', 'CHOICES', 'FOLDS', 'MARGINS', 'MIN_TRAIN', 'MIN_HOLDOUT',
+           'element_masks', 'row_choices']
+
+CHOICES = ('none', 'own', 'all')
+#: contiguous blocks of the rows (in time order), each held out in turn
+FOLDS = 4
+#: at least this many samples per block, and this many to learn from; else no selection
+MIN_HOLDOUT = 10
+MIN_TRAIN = 20
+#: a choice is taken over the simpler one before it only if its held-out error is below
+#: (1 - margin) times the simpler one's
+MARGINS = {'own': 0.1, 'all': 0.2}
+
+
+def element_masks(structure: Structure) -> dict:
+    """Return the elements each choice keeps: ``choice -> (E,) bool``."""
+    E = structure.E
+    own = np.array([n is None or n == m for m, n in structure.elems], bool)
+    return {'none': np.zeros(E, bool), 'own': own, 'all': np.ones(E, bool)}
+
+
+def _pin(structure: Structure, log_ls: np.ndarray, mask: np.ndarray) -> None:
+    """Pin every lengthscale of the elements in ``mask`` but their own velocity's, in place."""
+    for e in np.flatnonzero(mask):
+        m = structure.elems[e][0]
+        keep = log_ls[e, m]
+        log_ls[e] = PINNED_LOG_LS
+        log_ls[e, m] = min(keep, PINNED_LOG_LS - 1.0)
+
+
+def row_choices(structure: Structure, hp: Hyper) -> list:
+    """Return the choice each output's switched-on elements amount to (``CHOICES``), per row."""
+    masks = element_masks(structure)
+    on = np.isfinite(np.asarray(hp.log_sf2, float))
+    pinned = np.asarray(hp.log_ls, float) >= PINNED_LOG_LS - 1e-9
+    out = []
+    for rows in structure.rows:
+        r = list(rows)
+        if not on[r].any():
+            out.append('none')
+        elif on[r].all() and not pinned[r].any():
+            out.append('all')
+        elif np.array_equal(on[r], masks['own'][r]) and pinned[r].any():
+            out.append('own')
+        else:
+            out.append('some')
+    return out
+
+
+def _candidates(structure: Structure, X: np.ndarray) -> tuple:
+    """
+    Return the choices with GP elements to try on standardized inputs X (n, N).
+
+    ``'own'`` only where every velocity reverses (an arm's joints): where one never comes near
+    zero (an aircraft's airspeed, ``hyper.persistent``), a force at another velocity's zero can
+    only be carried by a coupling to it (the drag of an A320 at zero angle of attack), and an
+    output restricted to its own velocity cannot be right there, however well it did on the data
+    so far (its first 80 samples: 0.043 against 0.049 with the couplings; the whole flight's
+    drag 1.7x worse with it).
+    """
+    if structure.kind == 'ard' or any(hyper_persistent(structure, X, e) for e in
+                                      range(structure.E)):
+        return ('all',)
+    return ('own', 'all')
+
+
+def _fold_error(structure: Structure, hp: Hyper, X: np.ndarray, Y: np.ndarray,
+                folds: list) -> np.ndarray:
+    """
+    Mean squared error per output of the posterior mean on each block, learned on the rest.
+
+    X, Y (n, N) standardized; folds: index arrays of the held-out blocks. Returns (N,), the
+    mean over every held-out row (standardized units).
+    """
+    n = X.shape[0]
+    err = np.zeros(structure.N)
+    count = 0
+    for test in folds:
+        train = np.setdiff1d(np.arange(n), test)
+        Xtr, Xte = X[train], X[test]
+        count += len(test)
+        for m in range(structure.N):
+            K = structure.output_kernel(m, Xtr, Xtr, hp.log_ls, hp.log_sf2)
+            if not np.any(K):
+                err[m] += float(np.sum(Y[test, m] ** 2))
+                continue
+            sn2 = math.exp(hp.log_sn2[m])
+            base = float(np.mean(np.diag(K))) + sn2
+            c = None
+            for rel in JITTER_STEPS:
+                try:
+                    c = cho_factor(K + (sn2 + rel * base) * np.eye(len(K)), lower=True)
+                    break
+                except LinAlgError:
+                    continue
+            if c is None:
+                err[m] = np.inf
+                continue
+            pred = structure.output_kernel(m, Xte, Xtr, hp.log_ls, hp.log_sf2) @ \
+                cho_solve(c, Y[train, m])
+            err[m] += float(np.sum((pred - Y[test, m]) ** 2))
+    return err / max(count, 1)
+
+
+def select_elements(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarray,
+                    fresh: Hyper, warm: bool = False, folds: int = FOLDS, **learn_kw):
+    """
+    Choose each output's elements by blocked cross-validation (module docstring).
+
+    Parameters
+    ----------
+    structure : kernels.Structure
+    hp : Hyper
+        Where to start (the last fit's hyper-parameters, or the initial ones); elements it has
+        switched off start from ``fresh``.
+    Qd, resid : (n, N)
+        Velocities and residuals after the prior mean (model units), oldest first.
+    fresh : Hyper
+        Initial hyper-parameters (``hyper.initial_hyper``) for elements that were off.
+    warm : bool
+        ``hp`` is a previous optimum: refine it without restarts (``hyper.learn_hyper``), where
+        a choice switches on no element that was off or pinned otherwise.
+    folds : int
+        Contiguous blocks of the rows, each held out in turn.
+    learn_kw
+        The other settings of ``hyper.learn_hyper`` (the model's).
+
+    Returns
+    -------
+    (Hyper, dict) or None
+        The hyper-parameters with the chosen elements on and ``info``: ``elements``
+        (``choices`` per output, ``heldout``: choice -> (N,) MSE in standardized units),
+        ``evaluations``. None when there are too few samples to hold blocks out.
+
+    """
+    n = Qd.shape[0]
+    if n < folds * MIN_HOLDOUT or n - n // folds < MIN_TRAIN:
+        return None
+    blocks = np.array_split(np.arange(n), folds)
+    X, Y = Qd / hp.sx, resid / hp.sy
+    masks = element_masks(structure)
+    start_on = np.isfinite(hp.log_sf2)
+    start_pinned = (hp.log_ls >= PINNED_LOG_LS - 1e-9).any(axis=1)
+    fitted, err, evals = {}, {'none': np.mean(Y ** 2, axis=0)}, 0
+    for choice in _candidates(structure, X):
+        mask = masks[choice]
+        h = hp.copy()
+        # elements that were off, or pinned where this choice is not (and the reverse), start
+        # from the initial hyper-parameters: no warm refinement of another model's optimum
+        new = mask & (~start_on | (start_pinned != (choice == 'own')))
+        h.log_sf2[new], h.log_ls[new] = fresh.log_sf2[new], fresh.log_ls[new]
+        h.log_sf2[~mask] = -np.inf
+        refine = warm and not new.any()
+        if choice == 'own':
+            _pin(structure, h.log_ls, mask)
+        else:
+            # couplings that were off start from the own elements just learned (their own
+            # velocity's lengthscale and signal variance) and are refined from there without
+            # restarts: a search from scratch over N elements per output, at every selection
+            # that had kept them off, cost most of an arm's learning time
+            own = new & masks['own'] if 'own' in fitted else np.zeros_like(new)
+            h.log_sf2[own] = fitted['own'].log_sf2[own] if own.any() else h.log_sf2[own]
+            for e in np.flatnonzero(own):
+                m = structure.elems[e][0]
+                h.log_ls[e, m] = fitted['own'].log_ls[e, m]
+            refine = refine or bool(own.any())
+        h, info = learn_hyper(structure, h, Qd, resid, warm=refine, **learn_kw)
+        evals += int(info.get('evaluations', 0))
+        fitted[choice] = h
+        err[choice] = _fold_error(structure, h, X, Y, blocks)
+    out = hp.copy()
+    choices = []
+    for m, rows in enumerate(structure.rows):
+        pick = 'none'
+        for choice in ('own', 'all'):
+            if choice in err and err[choice][m] < (1.0 - MARGINS[choice]) * err[pick][m]:
+                pick = choice
+        choices.append(pick)
+        r = list(rows)
+        if pick == 'none':
+            out.log_sf2[r] = -np.inf
+        else:
+            h = fitted[pick]
+            out.log_sf2[r], out.log_ls[r] = h.log_sf2[r], h.log_ls[r]
+            out.log_sn2[m] = h.log_sn2[m]
+    return out, {'elements': {'choices': choices,
+                              'heldout': {c: e.tolist() for c, e in err.items()}},
+                 'evaluations': evals}
+
+
+def choice_summary(choices) -> Optional[str]:
+    """Return 'all: 0 1, diag: 2, none: 3' for per-output choices (None: none made)."""
+    if not choices:
+        return None
+    parts = []
+    for c in CHOICES + ('some',):
+        idx = [str(i) for i, x in enumerate(choices) if x == c]
+        if idx:
+            parts.append(f'{c}: {" ".join(idx)}')
+    return ', '.join(parts)
