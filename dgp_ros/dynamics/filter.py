@@ -31,6 +31,16 @@ Short windows pass the velocity noise (variance ~ 1 / h^3), long ones bend fast 
 fast one is about the Panda's acceleration limits) with a 20 ms delay. Uniform weights beat
 Epanechnikov and tricube here (noise-limited). Order 3 with h = 40 ms does as well on both and
 better with noisier velocities, at twice the delay and fit cost.
+
+**Sized from the stream's rate.** A window in seconds holds few samples of a slow stream: the
+estimator's 50 ms hold 3 samples of a 30 Hz ``/joint_states`` stream, fewer than the fit needs,
+so every sample was dropped and nothing was ever learned. The filter measures the stream's
+sample interval (the median of the last :data:`RATE_SAMPLES` intervals, ``sample_interval_s``)
+and uses ``max(half_window_s, MIN_SIDE_SAMPLES x interval)`` (at most :data:`MAX_DELAY_S`;
+``effective_half_window_s``); a gap restarts it only beyond ``max(max_gap_s, 4 x interval)``.
+Below ``MIN_SIDE_SAMPLES / MAX_DELAY_S`` (15 Hz) the window holds fewer samples than that, and
+below 2 per side (10 Hz) the estimate is no better than a difference quotient of its neighbours
+(``too_slow`` says so: the residual's acceleration term is then noise).
 """
 from __future__ import annotations
 
@@ -40,10 +50,15 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ['AccelFilter', 'AccelSample', 'DEFAULT_HALF_WINDOW_S', 'MAX_DELAY_S', 'KERNELS']
+__all__ = ['AccelFilter', 'AccelSample', 'DEFAULT_HALF_WINDOW_S', 'MAX_DELAY_S', 'KERNELS',
+           'MIN_SIDE_SAMPLES']
 
 DEFAULT_HALF_WINDOW_S = 0.02
 MAX_DELAY_S = 0.2
+#: samples on each side of the centre the window holds at least (at the measured rate)
+MIN_SIDE_SAMPLES = 3
+#: sample intervals the rate is measured over (their median)
+RATE_SAMPLES = 64
 
 # weight of a sample at normalized offset u = (t - t_c) / h, |u| <= 1
 KERNELS = {
@@ -75,15 +90,15 @@ class AccelFilter:
     Parameters
     ----------
     half_window_s : float
-        Half window ``h`` [s], in (0, :data:`MAX_DELAY_S`]. The output for a sample comes when the
-        first sample at or after ``t_c + h`` arrives. Should cover at least about 5 samples at the
-        input rate (one-sided windows with too few samples are dropped).
+        Least half window ``h`` [s], in (0, :data:`MAX_DELAY_S`]. The output for a sample comes
+        when the first sample at or after ``t_c + h`` arrives. It is widened to hold
+        :data:`MIN_SIDE_SAMPLES` samples per side at the measured rate (module docstring).
     order : int
         Degree of the local polynomial in t, 1 to 4. On a symmetric window the derivative of
         degrees 1 and 2 (or 3 and 4) coincide; 2 keeps it so on jittered stamps.
     max_gap_s : float
-        A stamp more than this after the previous one restarts the filter [s]; so does a stamp
-        before the previous one. Must exceed the sample period.
+        A stamp more than this (or 4 measured sample intervals, if more) after the previous one
+        restarts the filter [s]; so does a stamp before the previous one.
     kernel : str
         Weights over the window, a key of :data:`KERNELS` (``'uniform'`` is Savitzky-Golay's).
 
@@ -117,12 +132,30 @@ class AccelFilter:
         self._nj: int | None = None
         self._t = np.empty(0)
         self._v = np.empty((0, 0))
+        self._dts: deque = deque(maxlen=RATE_SAMPLES)
+        self._dt = 0.0
+        self._n_dt = 0
         self.reset()
 
     @property
+    def sample_interval_s(self) -> float:
+        """The stream's measured sample interval [s] (median of the last ones; 0 before two)."""
+        return self._dt
+
+    @property
+    def effective_half_window_s(self) -> float:
+        """The half window in use [s]: ``half_window_s`` widened to the measured rate."""
+        return min(MAX_DELAY_S, max(self.half_window_s, MIN_SIDE_SAMPLES * self._dt))
+
+    @property
+    def too_slow(self) -> bool:
+        """Tell whether the longest window holds fewer than 2 samples per side (module doc)."""
+        return 2.0 * self._dt > MAX_DELAY_S * (1.0 + 1e-9)
+
+    @property
     def delay_s(self) -> float:
-        """How long the output trails the input [s] (the half window)."""
-        return self.half_window_s
+        """How long the output trails the input [s] (the effective half window)."""
+        return self.effective_half_window_s
 
     @property
     def pending(self) -> int:
@@ -145,7 +178,7 @@ class AccelFilter:
         n = self._n
         if n == self._t.size:
             oldest = self._pending[0][0] if self._pending else t
-            lo = int(np.searchsorted(self._t[:n], oldest - self.half_window_s, 'left'))
+            lo = int(np.searchsorted(self._t[:n], oldest - self.effective_half_window_s, 'left'))
             keep = n - lo
             cap = self._t.size if keep < self._t.size // 2 else 2 * max(self._t.size, 32)
             t_buf, v_buf = np.empty(cap), np.empty((cap, self._nj))
@@ -201,7 +234,9 @@ class AccelFilter:
             if t == last:
                 self.rejected += 1
                 return []
-            if t < last or t - last > self.max_gap_s:
+            if last < t:
+                self._note_interval(t - last)
+            if t < last or t - last > max(self.max_gap_s, 4.0 * self._dt):
                 self._restart()
         if not self._n:
             self._start = t
@@ -209,7 +244,8 @@ class AccelFilter:
         if want:
             self._pending.append((t, qd.copy(), payload))
         out: list[AccelSample] = []
-        while self._pending and self._pending[0][0] + self.half_window_s <= t:
+        h = self.effective_half_window_s
+        while self._pending and self._pending[0][0] + h <= t:
             tc, qd_c, pl = self._pending.popleft()
             fit = self._fit(tc)
             if fit is None:
@@ -219,9 +255,16 @@ class AccelFilter:
         self.samples_out += len(out)
         return out
 
+    def _note_interval(self, dt: float) -> None:
+        """Take one sample interval into the measured rate (median, refreshed every 8)."""
+        self._dts.append(dt)
+        self._n_dt += 1
+        if self._n_dt <= 8 or self._n_dt % 8 == 0:
+            self._dt = float(np.median(self._dts))
+
     def _fit(self, tc: float) -> np.ndarray | None:
         """(fitted velocity, derivative) at ``tc``, (2, N), or None if the window is unusable."""
-        h = self.half_window_s
+        h = self.effective_half_window_s
         if tc - h < self._start:
             return None
         t = self._t[:self._n]

@@ -120,6 +120,8 @@ class LearnerHealth:
     refit_durations: deque = field(default_factory=lambda: deque(maxlen=1000))
     structure: str = ''               # prior='auto': the chosen friction / offsets / correction
     structure_scores: dict = field(default_factory=dict)   # its best CV scores
+    elements: str = ''                # elements='auto': each joint's elements of D (gp.select)
+    elements_scores: dict = field(default_factory=dict)    # their CV errors per choice
     correction_basis: str = ''        # what the conservative correction is built from
     corrections_refused: int = 0      # corrections that would inflate the targets: not applied
 
@@ -357,6 +359,8 @@ class LearnerReport:
                 'version': self._version,
                 'structure': self.health.structure,
                 'structure_scores': dict(self.health.structure_scores),
+                'elements': self.health.elements,
+                'elements_scores': dict(self.health.elements_scores),
                 'correction_basis': self.health.correction_basis,
                 'corrections_refused': self.health.corrections_refused,
                 'offsets': (None if self._param is None or not np.any(self._param.offsets) else

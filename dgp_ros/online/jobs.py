@@ -20,6 +20,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from dgp_ros.gp.select import choice_summary
+
 from .worker import prove, RefitJob, RefitResult, run_job
 
 __all__ = ['JobRunner']
@@ -325,6 +327,11 @@ class JobRunner:
         self._hyper = model.hyperparams_
         if job.optimize:
             self._opt_n = job.Q.shape[0]
+            picked = getattr(model, 'fit_info_', {}).get('elements')
+            if picked:
+                self.health.elements = choice_summary(picked['choices'])
+                self.health.elements_scores = {c: [round(v, 4) for v in e]
+                                               for c, e in picked['heldout'].items()}
 
     def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
         """Block until no refit is running; True if none is running at return."""

@@ -435,7 +435,7 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
             self._absorb()          # the saved prior and correction see the whole history
             with self._lock:
                 model = copy.deepcopy(self._model)
-        gains = self.skill_gains()
+        gains = self.saved_gains()
         if gains[0] is not None:    # restored with the model (``_load``)
             model.grounds_ = {k: [float(x) for x in v] for k, v in zip(GAINS, gains)}
         path = os.path.abspath(path)

@@ -53,6 +53,7 @@ class LearningSwitch:
 
     def _learning_switched(self, on: bool) -> None:
         """Under the lock, after ``config.learning`` changed to ``on``."""
+        self._gains_seq += 1                    # the snapshot's gains switch memory (grounds)
         if on:
             self._freeze_wanted = False
             self._clock = None                  # the refit clock starts at the next sample

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from dgp_ros.dynamics import AccelFilter
+from dgp_ros.dynamics.filter import MIN_SIDE_SAMPLES
 
 
 def _stamps(n, rate=1000.0, jitter=50e-6, seed=0, t0=1.7e9):
@@ -90,11 +91,38 @@ def test_stamps_backwards_and_gaps_restart():
     assert f.restarts == 2 and f.dropped == 24 + 8 and f.pending == 1
 
 
-def test_sparse_input_and_nonfinite_velocity_give_no_estimate():
+def test_the_window_widens_to_the_stream_rate_and_too_slow_a_stream_is_named():
+    # 250 Hz with a 5 ms half window: 1 sample per side, too few for the fit; the filter
+    # widens the window to MIN_SIDE_SAMPLES per side at the measured rate and estimates
     f = AccelFilter(0.005)
-    for x in 10.0 + np.arange(50) * 0.004:                      # 250 Hz: 1 sample per side
-        assert f.push(x, [1.0]) == []
-    assert f.dropped == 48 and f.pending == 2
+    t = 10.0 + np.arange(100) * 0.004
+    out = []
+    for x in t:
+        out += f.push(x, [2.0 * x])                              # qdd = 2
+    assert abs(f.sample_interval_s - 0.004) < 1e-9
+    assert abs(f.effective_half_window_s - MIN_SIDE_SAMPLES * 0.004) < 1e-9
+    assert f.delay_s == f.effective_half_window_s and not f.too_slow
+    assert len(out) >= 90 and np.allclose([s.qdd[0] for s in out], 2.0)
+    # 30 Hz: the default 50 ms would hold one sample per side; 100 ms holds three
+    g = AccelFilter(0.05)
+    out = []
+    for x in np.arange(90) / 30.0:
+        out += g.push(x, [np.sin(x)])
+    assert abs(g.effective_half_window_s - 0.1) < 1e-6 and len(out) >= 80
+    assert max(abs(s.qdd[0] - np.cos(s.t)) for s in out) < 0.02
+    # 10 Hz: the longest window (MAX_DELAY_S) holds 2 per side; 5 Hz: one, too slow to fit;
+    # and an interval of 0.2 s is no gap at that rate
+    h = AccelFilter(0.05)
+    for x in np.arange(50) / 10.0:
+        h.push(x, [1.0])
+    assert not h.too_slow and h.samples_out >= 45
+    h = AccelFilter(0.05)
+    for x in np.arange(50) / 5.0:
+        assert h.push(x, [1.0]) == []
+    assert h.too_slow and h.restarts == 0 and h.dropped >= 45
+
+
+def test_nonfinite_velocity_gives_no_estimate():
     t = _stamps(200)
     qd = np.ones((200, 1))
     qd[100] = np.nan

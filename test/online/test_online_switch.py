@@ -168,3 +168,30 @@ def test_switch_in_a_learner_thread_or_process(tmp_path, mode):
         assert est.diagnostics()['samples_added'] > e['samples_added']
     finally:
         est.close()
+
+
+def test_a_frozen_model_keeps_the_grounds_it_earned(tmp_path):
+    # joint b's force is noise the model cannot learn: one step ahead it earns no weight there,
+    # and the saved model (learning off, or loaded elsewhere) answers with that safety net, as
+    # the node that learned it did: toward the fallback on b, unblended on a
+    path = str(tmp_path / 'm.npz')
+    rng = np.random.default_rng(5)
+    t, Q, T = _stream(400)
+    T[:, 1] = rng.normal(size=400)
+    est = OnlineEstimator(_cfg(model_path=path, elements='all', prior='viscous'))
+    _feed(est, t[:300], Q[:300], T[:300])
+    est.set_learning(False)
+    saved = load_model(path)
+    w = np.array(saved.grounds_['model_weight'])
+    assert w[0] > 0.8 and w[1] < 0.5, saved.grounds_
+    out = _feed(est, t[300:], Q[300:], T[300:])
+    got = np.array([e.tau_hat for e in out])
+    ref = saved.predict(Q[300:])
+    assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
+    bare = load_model(path)
+    bare.grounds_ = None
+    raw = bare.predict(Q[300:])
+    assert np.allclose(raw[:, 0], ref[:, 0], rtol=0.2) and \
+        np.abs(raw[:, 1] - ref[:, 1]).max() > 0.05 * np.abs(raw[:, 1]).max()
+    assert np.all(np.einsum('ij,ij->i', Q[300:], ref) >= 0.0)
+    est.close()
