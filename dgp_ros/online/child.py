@@ -247,6 +247,9 @@ class LearnerLoop:
     def _status(self) -> dict:
         d = self.learner.status()
         d['learner_sched'] = self.sched
+        if d.get('learning') == 'off' and self.learner.version != self.sent_version:
+            # 'off' means the node answers from the frozen model: not before it holds it
+            d['learning'] = 'stopping'
         return d
 
     # ------------------------------------------------------------------ commands

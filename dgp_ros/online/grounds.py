@@ -11,8 +11,8 @@ is blended toward what has proven itself.
 answered by the served model *before* the sample is learned (one step ahead, as the message path
 answered it), and by the parametric part alone (the passive prior ``diag(m_d(qd)) qd``).
 :class:`Skill` keeps exponentially weighted sums of these answers against the learned target,
-per joint, over the last ``HALF_LIFE_S`` of learning time, and gives two gains by shrunken least
-squares:
+per joint, over the last ``HALF_LIFE_S`` of learning time (at least ``HALF_LIFE_SAMPLES``
+samples), and gives two gains by shrunken least squares:
 
 * ``a`` (N,): the prior's gain, ``argmin_a E[(t - a p)^2]`` clipped to [0, 1]: the fallback is
   ``f = a p`` (the parametric part where it has skill, zero where it has none);
@@ -62,14 +62,19 @@ import numpy as np
 
 from dgp_ros.gp.blend import blend, GAINS
 
-__all__ = ['Skill', 'SkillMixin', 'blend', 'GAINS', 'HALF_LIFE_S', 'LONG_HALF_LIFE_S',
+__all__ = ['Skill', 'SkillMixin', 'blend', 'GAINS', 'HALF_LIFE_S', 'HALF_LIFE_SAMPLES',
+           'LONG_HALF_LIFE_S',
            'PSEUDO_SAMPLES', 'FULL_GAIN', 'EVIDENCE_S', 'SURPRISE_SIGNAL']
 
 
-#: learning time (s) over which the skill is measured: a sample's weight halves after it (the
-#: grounds take a joint whose model goes wrong to its fallback within about a second, at any
-#: stream rate: 100 samples were 1 s of a 1 kHz arm learning every 10 ms, 3.3 s at 30 Hz)
+#: learning time (s) over which the skill is measured: a sample's weight halves after it ...
 HALF_LIFE_S = 1.0
+#: ... or after this many samples, if that is longer: a gain needs samples as well as seconds
+#: (an A320 at 60 Hz with 60 samples: its one-step NMSE 1.2-1.4x worse on a flight of the
+#: family; 100 samples are 1 s of an arm learning every 10 ms, 1.7 s at 60 Hz, 3.3 s at 30 Hz;
+#: a model that goes wrong by three times the force falls back below a weight of 0.3 in 0.8 s
+#: at 100 Hz, 1.2 s at 60 Hz, 2.7 s at 30 Hz: test_online_grounds)
+HALF_LIFE_SAMPLES = 100
 #: the memory of the gains a saved model carries (a frozen model answers with them for good:
 #: the last second's gains of a noisy joint scaled a real Panda joint's friction by 0.54)
 LONG_HALF_LIFE_S = 30.0
@@ -114,8 +119,9 @@ class _Memory:
         self.a, self.w, self.g = z(N), z(N), z(N)
 
     def decay(self, dt: float) -> float:
-        """Return the weight left to the past after ``dt`` s of learning time."""
-        return 0.5 ** (dt / self.half_life_s)
+        """Return the weight left to the past after one sample ``dt`` s after the last one."""
+        return 0.5 ** min(dt / self.half_life_s, self.half_life_s / HALF_LIFE_S /
+                          HALF_LIFE_SAMPLES)
 
     def note_prior(self, t: np.ndarray, p: np.ndarray, g: float) -> None:
         self.tp = g * self.tp + t * p
@@ -270,13 +276,18 @@ class Skill:
         Start from gains earned before (w, a, c as ``gains`` returns them, (N,) each).
 
         Written into both memories as ``n`` noise-free samples of unit size that give exactly
-        these gains (default: half a short half-life's worth at 100 samples per second); new
-        samples move them as they would have moved the earned ones.
+        these gains (default ``seed_samples``); new samples move them as they would have moved
+        the earned ones.
         """
-        n = 0.5 * 100.0 * self.short.half_life_s if n is None else float(n)
+        n = self.seed_samples if n is None else float(n)
         self.short.seed(w, a, c, n)
         self.long.seed(w, a, c, n)
         self.evidence_s = EVIDENCE_S
+
+    @property
+    def seed_samples(self) -> float:
+        """Samples' worth a seed is written as: half a short half-life at 100 per second."""
+        return 0.5 * 100.0 * self.short.half_life_s
 
     def summary(self) -> dict:
         """Per-joint figures for /diagnostics: confidence, gains and skills (1 - MSE / MSE(0))."""
@@ -404,8 +415,14 @@ class SkillMixin:
         s = self._skill
         return (None, None, None) if s is None else s.long_gains()
 
-    def restore_gains(self, model_weight, prior_gain, confidence) -> None:
-        """Start from the gains a previous learner earned (a restarted learner process)."""
+    def restore_gains(self, model_weight, prior_gain, confidence, live=None) -> None:
+        """
+        Start from the gains a previous learner earned (a restarted learner, a model file).
+
+        (w, a, c), (N,) each, seed both memories; ``live``: a saved model's record of the gains
+        its learner answered with (``GAINS`` -> N numbers), which seed the short memory, so that
+        a node that loads the file and learns on answers as the one that saved it.
+        """
         if model_weight is None or prior_gain is None or confidence is None:
             return
         with self._lock:
@@ -413,7 +430,31 @@ class SkillMixin:
             if self._skill is None:
                 self._skill = Skill(w.size)
             self._skill.seed(w, prior_gain, confidence)
+            if live:
+                self._skill.short.seed(*(live[k] for k in GAINS), self._skill.seed_samples)
             self._snap = None
+
+    def grounds_record(self) -> Optional[dict]:
+        """
+        Return what a saved model carries of the gains (``grounds_``), None before any.
+
+        ``GAINS`` -> the long memory's (``saved_gains``: what the model answers with, frozen or
+        loaded anywhere), and ``live`` -> the gains the learner answers with now (a node that
+        loads the file and learns on starts from them).
+        """
+        gains, live = self.saved_gains(), self.skill_gains()
+        if gains[0] is None:
+            return None
+        record = {k: [float(x) for x in v] for k, v in zip(GAINS, gains)}
+        record['live'] = {k: [float(x) for x in v] for k, v in zip(GAINS, live)}
+        return record
+
+    def restore_grounds(self, record: Optional[dict], N: int) -> None:
+        """Start from a model file's ``grounds_`` record (None: full weight, the user's model)."""
+        g = record or {}
+        live = g.get('live')
+        ok = isinstance(live, dict) and all(np.shape(live.get(k)) == (N,) for k in GAINS)
+        self.restore_gains(*(g.get(k, np.ones(N)) for k in GAINS), live=live if ok else None)
 
     def skill_summary(self) -> dict:
         return {} if self._skill is None else self._skill.summary()

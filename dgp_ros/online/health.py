@@ -12,6 +12,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from .grounds import EVIDENCE_S
+
 __all__ = ['Health', 'LearnerHealth', 'LearnerReport', 'GapCounter', 'POWER_WINDOW',
            'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
 
@@ -32,6 +34,12 @@ REFIT_FAIL_ERROR = 3
 MISSING_WARN_FRACTION = 0.01
 #: learned samples over which the negative-power warning is decided (and the least it needs)
 POWER_WINDOW, POWER_MIN = 1000, 100
+#: refits the failure rate is judged over, and the rate that makes a WARN (never 'ok' while a
+#: third of them fail: a UR10 whose 4 refits of 9 failed said 'ok')
+RECENT_REFITS, REFIT_FAIL_WARN_FRACTION = 9, 1.0 / 3.0
+#: one-step skill (1 - MSE / MSE of no answer) by which the model may trail its parametric part
+#: on a joint, over the last seconds, before the status says so
+SKILL_WARN_MARGIN = 0.1
 
 
 class GapCounter:
@@ -118,6 +126,7 @@ class LearnerHealth:
     last_refit_duration_s: Optional[float] = None
     last_refit_optimized: Optional[bool] = None
     refit_durations: deque = field(default_factory=lambda: deque(maxlen=1000))
+    recent_refits: deque = field(default_factory=lambda: deque(maxlen=RECENT_REFITS))  # ok?
     structure: str = ''               # prior='auto': the chosen friction / offsets / correction
     structure_scores: dict = field(default_factory=dict)   # its best CV scores
     elements: str = ''                # elements='auto': each joint's elements of D (gp.select)
@@ -141,6 +150,7 @@ class LearnerHealth:
         self.last_refit_wall_time = wall_time
         self.last_refit_stamp = stamp
         self.last_refit_optimized = optimized
+        self.recent_refits.append(bool(ok))
         if ok:
             self.refits_ok += 1
             self.consecutive_refit_failures = 0
@@ -173,6 +183,8 @@ class LearnerHealth:
             'last_absorb_error': self.last_absorb_error, 'proofs_failed': self.proofs_failed,
             'last_proof_error': self.last_proof_error,
             'refit_durations': list(self.refit_durations),
+            'recent_refits': len(self.recent_refits),
+            'recent_refits_failed': self.recent_refits.count(False),
         }
 
 
@@ -195,6 +207,7 @@ class Health:
     recent_ok: deque = field(default_factory=lambda: deque(maxlen=REJECT_WINDOW))
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
     gaps: GapCounter = field(default_factory=GapCounter)   # messages missing from the stream
+    _dropped_seen: int = 0            # the learner's samples_dropped at the last status
 
     def answered(self, guarantee: str, k: int) -> None:
         """Count ``k`` answers served under ``guarantee`` (a ``gp.GUARANTEES`` key)."""
@@ -304,12 +317,24 @@ class Health:
             level = max(level, WARN)
         failures = learner.get('consecutive_refit_failures', 0)
         error = learner.get('last_refit_error', '')
+        n, bad = learner.get('recent_refits', 0), learner.get('recent_refits_failed', 0)
         if failures and 'sanity check' in error:
             reasons.append(f'model rejected ({error}); the previous one serves')
             level = max(level, WARN)
         elif failures:
             reasons.append(f'refit failing ({failures} in a row: {error})')
             level = max(level, ERROR if failures >= REFIT_FAIL_ERROR else WARN)
+        if n >= 3 and bad >= REFIT_FAIL_WARN_FRACTION * n and not failures:
+            reasons.append(f'{bad} of the last {n} refits failed or were rejected (the model '
+                           'serves from the others)')
+            level = max(level, WARN)
+        dropped = learner.get('samples_dropped') or 0
+        if dropped > self._dropped_seen:
+            reasons.append(f'the learner fell behind: {dropped - self._dropped_seen} samples '
+                           f'dropped since the last report ({dropped} in all; its queue was '
+                           'full): it gets too little CPU, and learns from fewer samples')
+            level = max(level, WARN)
+        self._dropped_seen = dropped
         if learner.get('last_absorb_error'):
             reasons.append(f'new samples not absorbed ({learner["last_absorb_error"]}); the '
                            'previous model serves')
@@ -392,6 +417,41 @@ class LearnerReport:
                     'subtracted')
             out.append(f'data are not damping: qd . ({what}) < 0 on {100 * frac:.0f}% of the '
                        f'recent samples (friction dissipates); {hint}')
+        out += self._front_warnings() + self._skill_warnings()
+        return out
+
+    def _front_warnings(self) -> List[str]:
+        """The residual front end: a stream too slow, samples it drops, a failing plugin."""
+        out, f, h = [], self._front.filter, self.health
+        if f is not None and f.too_slow:
+            out.append(f'the stream is too slow for the acceleration filter: one sample every '
+                       f'{1e3 * f.sample_interval_s:.0f} ms, its longest window (0.2 s each '
+                       'side) holds fewer than 2 per side; nothing is learned: publish '
+                       'joint_states at 10 Hz or more')
+        elif f is not None and f.samples_out < f.dropped and f.dropped >= 20:
+            out.append(f'the acceleration filter dropped {f.dropped} of the residual samples '
+                       f'(gaps of over {1e3 * max(f.max_gap_s, 4 * f.sample_interval_s):.0f} ms '
+                       'or stamps that go back restart it): few samples are learned; a longer '
+                       'accel_half_window_s bridges short gaps')
+        if h.inverse_dynamics_errors and h.inverse_dynamics_errors >= 0.01 * max(
+                h.samples_added + h.samples_rate_limited, 1):
+            out.append(f'inverse dynamics failed on {h.inverse_dynamics_errors} samples (not '
+                       'learned; check the plugin, the joints and their order)')
+        return out
+
+    def _skill_warnings(self) -> List[str]:
+        """Joints whose answers trail their parametric part, or no answer (``grounds``)."""
+        s = self._skill
+        if s is None or s.evidence_s < EVIDENCE_S or self._model is None:
+            return []
+        sm = s.summary()
+        names = self._structure_names() or [str(j) for j in range(self._N or 0)]
+        worse = [names[j] for j, (m, p) in enumerate(zip(sm['skill_model'], sm['skill_prior']))
+                 if m is not None and p is not None and m < p - SKILL_WARN_MARGIN]
+        out = []
+        if worse:
+            out.append(f'the model answers worse than its parametric part on {", ".join(worse)} '
+                       '(one-step, the last seconds): the answers fall back to it there')
         return out
 
     def _stalled(self) -> bool:

@@ -35,7 +35,7 @@ from dgp_ros.gp.means import make_mean
 
 from .absorb import Absorber
 from .config import check_model_path, EstimatorConfig
-from .grounds import GAINS, SkillMixin
+from .grounds import SkillMixin
 from .health import LearnerHealth, LearnerReport, POWER_WINDOW
 from .jobs import JobRunner
 from .selection import Buffer, Selector
@@ -435,9 +435,9 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
             self._absorb()          # the saved prior and correction see the whole history
             with self._lock:
                 model = copy.deepcopy(self._model)
-        gains = self.saved_gains()
-        if gains[0] is not None:    # restored with the model (``_load``)
-            model.grounds_ = {k: [float(x) for x in v] for k, v in zip(GAINS, gains)}
+        record = self.grounds_record()
+        if record is not None:      # restored with the model (``_load``)
+            model.grounds_ = record
         path = os.path.abspath(path)
         model.save(path)
         return path
@@ -463,9 +463,7 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
             raise ValueError(f'{source or "the"} model passivity {model.passivity!r} != '
                              f'{cfg.passivity!r}')
         model.posterior_ = model.posterior_.ensure_factors()    # a snapshot is predict-only
-        # the gains a file carries are the learner's to apply (restore_gains): the served model
-        # answers unblended, the snapshot blends it once
-        model.grounds_ = None
+        model.grounds_ = None       # the learner's gains blend its answers (restore_grounds)
         proof = prove(model, cfg.passivity)           # re-proves: never trusts the file
         with self._lock:
             self.health.proof_done(proof)
@@ -482,15 +480,14 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
     def _load(self, path: str) -> None:
         try:
             model = self._loader(path)
-            g = getattr(model, 'grounds_', None) or {}
+            g = getattr(model, 'grounds_', None)
             self.adopt(model, 'file')
         except Exception as exc:
             self.load_error = f'could not use {path}: {exc}'
             return
         # a model file answers with the gains it was saved with (a file without them, at full
         # weight: the user gave it); one-step scores then move them as a learned model's
-        N = model.X_train_.shape[1]
-        self.restore_gains(*(g.get(k, np.ones(N)) for k in GAINS))
+        self.restore_grounds(g, model.X_train_.shape[1])
 
 
 def _inverse_dynamics(config: EstimatorConfig):

@@ -98,10 +98,12 @@ def test_certified_with_a_pending_proof_answers_as_projected():
     ta = np.array([e.tau_hat for e in ea])
     tb = np.array([e.tau_hat for e in eb])
     same = np.all(np.isclose(ta, tb, rtol=1e-9, atol=1e-9), axis=1)
-    # (after the first 20 answers: while the model earns its weight, a proven psd model blends
-    # joint by joint where a projected one blends all joints alike, online.grounds)
+    # (after the first 20 answers. A rebase (every buffer_size / 4 = 15 samples) proves the
+    # global bound, psd: until the next append that model blends joint by joint where a
+    # projected one blends all joints alike (online.grounds), so while a joint's weight is below
+    # 1 (here joint 3's model is barely better than its prior) one answer in 15 may differ)
     same = same[20:]
-    assert same.mean() > 0.95, same.mean()
+    assert same.mean() > 1.0 - 1.5 / 15, same.mean()
     tau = np.array([e.tau for e in ea])
     ratio = ((ta - tau) ** 2).mean(axis=0) / ((tb - tau) ** 2).mean(axis=0)
     assert np.all(ratio < 1.1), ratio

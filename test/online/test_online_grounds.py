@@ -195,3 +195,25 @@ def test_a_surprise_counts_only_where_the_error_matters_against_the_force():
     # and a law that changes beyond the box by far more than that still asks for a refit
     law = lambda q, t: (1.0 + (t >= 6.0) * 4.0 * q ** 2) * q        # noqa: E731
     assert _stream(OnlineEstimator(_cfg()), law, True) >= 1
+
+
+def test_a_model_that_goes_wrong_falls_back_within_about_a_second():
+    # an arm learning every 10 ms: right for 10 s, then wrong by three times the force; the
+    # model's weight falls below 0.3 within a second, and the slower the stream the longer it
+    # takes (a gain needs samples: HALF_LIFE_SAMPLES)
+    from dgp_ros.online.grounds import HALF_LIFE_S, HALF_LIFE_SAMPLES
+
+    def fall_time(rate):
+        s, rng, dt = Skill(N), np.random.default_rng(0), 1.0 / rate
+        for i in range(int(10 * rate)):
+            t = rng.normal(size=N)
+            s.note(t, t + 0.05 * rng.normal(size=N), np.zeros(N), stamp=i * dt)
+        for k in range(int(5 * rate)):
+            t = rng.normal(size=N)
+            s.note(t, t + 3.0 * rng.normal(size=N), np.zeros(N), stamp=(int(10 * rate) + k) * dt)
+            if s.gains()[0].max() < 0.3:
+                return (k + 1) * dt
+        return np.inf
+    assert HALF_LIFE_S == 1.0 and HALF_LIFE_SAMPLES == 100
+    assert fall_time(100) <= 1.0
+    assert fall_time(100) < fall_time(60) <= 1.5 < fall_time(30) <= 3.0
