@@ -139,12 +139,12 @@ class AccelFilter:
 
     @property
     def sample_interval_s(self) -> float:
-        """The stream's measured sample interval [s] (median of the last ones; 0 before two)."""
+        """Return the stream's measured sample interval [s] (median of the last; 0 before two)."""
         return self._dt
 
     @property
     def effective_half_window_s(self) -> float:
-        """The half window in use [s]: ``half_window_s`` widened to the measured rate."""
+        """Return the half window in use [s]: ``half_window_s`` widened to the measured rate."""
         return min(MAX_DELAY_S, max(self.half_window_s, MIN_SIDE_SAMPLES * self._dt))
 
     @property

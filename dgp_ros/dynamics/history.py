@@ -21,10 +21,10 @@ last blocks: fit on everything before a block, score on the block, with the colu
 applied (a correction's training-only columns are not). The score is the mean over joints of the
 pooled squared error over the residual's variance. Offsets need a clear win (they drift with the
 pose on a real arm: learned on one part of a motion they are wrong on the next, and adjacent
-blocks cannot show that), and the simplest structure close to the best is taken. Offsets are then
-kept joint by joint: a joint keeps its offset only where it cuts that joint's own score by
-:data:`JOINT_OFFSET_MARGIN` (a real UR10's wrist 2 carries a 2.4 N m offset that no other joint has:
-without it its held-out NMSE is 0.10, with it 0.014).
+blocks cannot show that), and the simplest structure close to the best is taken. Offsets are
+then kept joint by joint: a joint keeps its offset only where it cuts that joint's own score by
+:data:`JOINT_OFFSET_MARGIN` (a real UR10's wrist 2 carries a 2.4 N m offset that no other joint
+has: without it its held-out NMSE is 0.10, with it 0.016).
 """
 from __future__ import annotations
 

@@ -197,9 +197,9 @@ class _DGP:
 
     def _learn(self, structure, hp, Qd, resid, Tau, started: bool):
         """Learn the hyper-parameters (and with ``elements='auto'`` the elements): (hp, info)."""
-        kw = dict(fix_noise=self.noise is not None, n_restarts=int(self.n_restarts),
-                  max_samples=int(self.max_opt_samples), random_state=int(self.random_state),
-                  noise_floor=float(self.noise_floor or MIN_NOISE_VAR))
+        kw = {'fix_noise': self.noise is not None, 'n_restarts': int(self.n_restarts),
+              'max_samples': int(self.max_opt_samples), 'random_state': int(self.random_state),
+              'noise_floor': float(self.noise_floor or MIN_NOISE_VAR)}
         warm = bool(self.warm_start) and started     # refine the last optimum, no restarts
         if self.elements == 'auto':
             fresh = initial_hyper(structure, Qd, resid, Tau, self.noise)

@@ -38,8 +38,8 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
 from ._chol import JITTER_STEPS
-from .kernels import Structure
 from .hyper import learn_hyper, persistent as hyper_persistent, PINNED_LOG_LS
+from .kernels import Structure
 from .posterior import Hyper
 
 __all__ = ['select_elements', 'choice_summary', 'CHOICES', 'FOLDS', 'MARGINS', 'MIN_TRAIN',
@@ -165,6 +165,7 @@ def select_elements(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.n
     Parameters
     ----------
     structure : kernels.Structure
+        The model's elements (kind and N).
     hp : Hyper
         Where to start (the last fit's hyper-parameters, or the initial ones); elements it has
         switched off start from ``fresh``.

@@ -33,7 +33,7 @@ PARAMS = {p.name: p for p in (
               'hyper-parameter refit, by the error on the newest quarter of the buffer held '
               'out: none, the parametric part alone; its diagonal element; or also its '
               'couplings to the other joints, only where they predict better) or all (every '
-              'element of the model kind: the paper\'s Full-D-GP)', choices=('auto', 'all')),
+              "element of the model kind: the paper's Full-D-GP)", choices=('auto', 'all')),
     ParamSpec('prior', 'str', 'auto', 'prior mean of the damping: auto (the structure is chosen '
               'from the data by cross-validation: friction family, offsets, the conservative '
               'correction of the rigid-body model; fitted on the whole history), or fixed: '

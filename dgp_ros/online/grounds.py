@@ -286,7 +286,7 @@ class Skill:
 
     @property
     def seed_samples(self) -> float:
-        """Samples' worth a seed is written as: half a short half-life at 100 per second."""
+        """Return the samples' worth a seed is written as (half a short half-life at 100 Hz)."""
         return 0.5 * 100.0 * self.short.half_life_s
 
     def summary(self) -> dict:

@@ -421,7 +421,7 @@ class LearnerReport:
         return out
 
     def _front_warnings(self) -> List[str]:
-        """The residual front end: a stream too slow, samples it drops, a failing plugin."""
+        """Warn of the residual front end: a stream too slow, dropped samples, a failing plugin."""
         out, f, h = [], self._front.filter, self.health
         if f is not None and f.too_slow:
             out.append(f'the stream is too slow for the acceleration filter: one sample every '
