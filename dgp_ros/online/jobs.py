@@ -286,11 +286,13 @@ class JobRunner:
 
     def _held_out(self, model, base, seq: int) -> Tuple[bool, str, int]:
         """
-        Compare the candidate with the served model on the samples neither has seen.
+        Compare the candidate with the served model and its own parametric part on new samples.
 
-        These are the samples that arrived while the candidate was fitted (none in sync mode):
-        the candidate and ``base``, the served model when the fit started (a snapshot: the
-        served one has appended them since), each predict them without having learned them.
+        These are the samples that arrived while the candidate was fitted (none in sync mode,
+        where the elements' cross-validation alone holds a GP against the parametric part):
+        the candidate, ``base`` (the served model when the fit started: a snapshot, the served
+        one has appended them since) and the candidate's prior mean each predict them without
+        having learned them.
         Returns (ok, reason, seq of the last of them).
         """
         with self._lock:
@@ -306,19 +308,22 @@ class JobRunner:
             T = np.array([t for _, _, t in newer])
             e_new = model.predict(Qn) - T
             e_old = base.predict(Qn) - T
+            e_par = model.mean_.force(Qn) - T if model.posterior_.structure.has_damping \
+                else e_old
             seq = newer[-1][0]
         except Exception as exc:          # noqa: BLE001 - a broken candidate is caught later
             return True, f'held-out check skipped: {exc}', seq
         T = np.array(T)
         e_new = float(np.mean(np.square(e_new)))
         e_old = float(np.mean(np.square(e_old)))
+        e_par = float(np.mean(np.square(e_par)))
         # a candidate within 1 % of the samples' variance is good enough, however good the
         # incumbent happens to be on them
         floor = float(np.mean(np.var(T, axis=0))) * 1e-2
-        if e_new > self.HELD_OUT_FACTOR * e_old + floor:
-            return False, (f'sanity check: error on the {len(T)} samples that arrived '
-                           f'during the fit {e_new / max(e_old, 1e-300):.1f} x the current '
-                           f"model's"), seq
+        for e_ref, whose in ((e_old, "the current model's"), (e_par, "its parametric part's")):
+            if e_new > self.HELD_OUT_FACTOR * e_ref + floor:
+                return False, (f'sanity check: error on the {len(T)} samples that arrived '
+                               f'during the fit {e_new / max(e_ref, 1e-300):.1f} x {whose}'), seq
         return True, '', seq
 
     def _swap(self, job: RefitJob, model, seq: int, gen: int) -> None:
