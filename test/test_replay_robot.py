@@ -74,16 +74,19 @@ def test_replay_with_the_default_prior_prints_no_python_warning(short_bag, tmp_p
     Replay prints no RuntimeWarning.
 
     The Stribeck prior fitted to an empty buffer (the first answers) warned 'Mean of empty
-    slice' on every replay with inverse dynamics.
+    slice' on every replay with inverse dynamics. With the plots, the friction curves too.
     """
     bag, _ = short_bag
-    rc = replay_main([str(bag), '--out', str(tmp_path / 'o'), '--joints', ','.join(NAMES),
-                      '--model', 'diag', '--no-plots', '-q', '--set', 'inverse_dynamics=urdf',
+    out = tmp_path / 'o'
+    rc = replay_main([str(bag), '--out', str(out), '--joints', ','.join(NAMES),
+                      '--model', 'diag', '-q', '--set', 'inverse_dynamics=urdf',
                       '--set', f'urdf_file={example_robot_urdf("panda")}',
                       '--set', 'refit_period_s=1.0', '--set', 'min_samples=150'])
     assert rc == 0
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)], \
         [str(w.message) for w in recwarn]
+    s = json.loads((out / 'summary.json').read_text())
+    assert 'friction_curves.png' in s['plots'] and (out / 'friction_curves.png').stat().st_size
 
 
 def test_urdf_without_a_urdf_is_refused_offline(short_bag, tmp_path, capsys):

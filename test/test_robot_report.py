@@ -67,8 +67,9 @@ def test_evaluate_scores_the_model_and_the_baselines_and_plots(run, tmp_path, mo
     assert res['random_velocities'] == 4000 and res['random_negative_power_beyond_roundoff'] == 0
     res['wall_time_s'] = 1.0
     files = rr.plot(res, d, str(tmp_path))
-    assert len(files) == 4 and all((tmp_path / f.split('/')[-1]).stat().st_size > 0
+    assert len(files) == 5 and all((tmp_path / f.split('/')[-1]).stat().st_size > 0
                                    for f in files)
+    assert any(f.endswith('friction_curves.png') for f in files)
     rr.print_summary(res)
     json.dumps(rr.jsonable(res), default=str)
     rr.save_stream(res, str(tmp_path / 'a.npz'))

@@ -41,6 +41,8 @@ import threading
 import time
 from typing import Optional
 
+import numpy as np
+
 from dgp_ros.apps.replay_report import (arrays_of, CsvWriter, make_plots, OneStep, summarize,
                                         write_csv, write_summary)
 from dgp_ros.bags import BagError, iter_joint_states, joint_state_topic, open_bag
@@ -256,6 +258,10 @@ def run(bag, out, topic=None, config=None, mass=None, plots=True, progress=False
                                                        one_step=info.get('one_step'))]
     if save_model and est.trained and not info['interrupted']:
         summary['model_file'] = est.save(save_model)
+    if plots and est.trained and not info['interrupted']:
+        curves = _friction_curves(out, est, info.get('one_step'), summary.get('model_file'))
+        if curves is not None:
+            summary.setdefault('plots', []).append(curves.name)
     write_summary(out, summary)
     if not estimates:
         raise ReplayError(_nothing_estimated(info, summary))
@@ -263,6 +269,24 @@ def run(bag, out, topic=None, config=None, mass=None, plots=True, progress=False
         raise ReplayError(f'no model to save to {save_model}: the estimator was never trained '
                           f'({summary["status"]["message"]})')
     return summary
+
+
+def _friction_curves(out: Path, est, one_step, model_file: Optional[str]):
+    """
+    Write ``friction_curves.png`` of the model as saved (with its earned gains); None if none.
+
+    Only with inverse dynamics (an arm: what was learned is a friction residual).
+    """
+    import tempfile
+    from dgp_ros.apps.friction_plot import friction_curves
+    from dgp_ros.gp import load_model
+    if one_step is None or not one_step.residual or not one_step.qd:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        model = load_model(model_file or est.save(str(Path(tmp) / 'model.npz')))
+    conf = (getattr(model, 'grounds_', None) or {}).get('confidence')
+    return friction_curves(out / 'friction_curves.png', model, np.array(one_step.qd),
+                           np.array(one_step.truth), np.array(one_step.q), est.names, conf)
 
 
 def _nothing_estimated(info, summary) -> str:

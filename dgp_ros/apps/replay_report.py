@@ -18,7 +18,9 @@ The files ``dgp-replay --out DIR`` writes to ``DIR``:
   negative-power fractions (estimate and measurement), refits, timings,
   rejected-message counts by reason, certificate at the end, the configuration used.
 - ``estimate_vs_measurement.png``, ``error.png`` (divided by the mass when given: m/s^2),
-  ``power_hist.png`` (matplotlib, Agg backend).
+  ``power_hist.png`` (matplotlib, Agg backend); with inverse dynamics ``friction_curves.png``
+  (``friction_plot``: per joint the learned residual against velocity, the saved model's curve,
+  its parametric part and a Coulomb + viscous + offset refit).
 """
 from __future__ import annotations
 
@@ -94,9 +96,11 @@ class OneStep:
     message (the model before it learned the message) and ``after`` the estimator's estimate
     at the same velocity once it has. With inverse dynamics the target is the friction residual
     the estimator learns (``effort - tau_rb``, complete ``accel_half_window_s`` later): ``ahead``
-    is the model's ``predict_residual(q, qd)`` (damping plus its correction of the rigid-body
-    model) when the message came, ``after`` the same once the residual was learned; only
-    the messages the rate limit lets through count. Call :meth:`add` with each Estimate (and the
+    is what the node published for the message (its damping force, blended by the grounds)
+    plus the model's correction of the rigid-body model and offsets, ``after`` the model's
+    ``predict_residual(q, qd)`` once the residual was learned; only the messages the rate limit
+    lets through count. ``qd``, ``q``: the learned samples' velocities and poses (the friction
+    curves). Call :meth:`add` with each Estimate (and the
     message's positions) right after ``OnlineEstimator.process`` returned it.
     """
 
@@ -107,6 +111,7 @@ class OneStep:
         self.est = est
         self.residual = bool(est.config.inverse_dynamics)
         self.truth, self.ahead, self.after, self.t = [], [], [], []
+        self.qd, self.q = [], []
         self._waiting = {}              # stamp -> prediction before learning (residual case)
 
     @property
@@ -118,6 +123,11 @@ class OneStep:
         if m is None:
             return fallback
         return np.asarray(m.predict_residual(q=q[None, :], qd=qd[None, :]))[0]
+
+    def _published(self, q, tau_hat):
+        """The published force plus the model's correction and offsets at q (N,)."""
+        corr = getattr(self.est.model, 'correction_', None)
+        return tau_hat if corr is None else tau_hat + np.asarray(corr(q[None, :]))[0]
 
     def add(self, e, names=None, position=None) -> None:
         """Take the Estimate ``e`` of a message with joint ``names`` and ``position`` (M,)."""
@@ -134,13 +144,15 @@ class OneStep:
                 self.truth.append(r.residual)
                 self.ahead.append(before)
                 self.after.append(self._residual_prediction(r.q, r.qd, before))
+                self.qd.append(r.qd)
+                self.q.append(r.q)
         if e.added and position is not None:
             q = np.asarray(position, float)
             if e.names and names is not None:      # the message's order -> the estimator's
                 at = {n: i for i, n in enumerate(names)}
                 q = q[[at[n] for n in e.names]]
             if q.shape == e.qd.shape:
-                self._waiting[e.stamp_s] = self._residual_prediction(q, e.qd, e.tau_hat)
+                self._waiting[e.stamp_s] = self._published(q, e.tau_hat)
             old = [s for s in self._waiting if s < e.stamp_s - self.KEEP_S]
             for s in old:
                 del self._waiting[s]

@@ -8,7 +8,8 @@ torque + sensor bias (what a model of the residual from ``q`` and ``qd`` can kno
 Makkar sigmoid and Coulomb-viscous models fitted per joint by least squares on the residual
 stream of the learned part (the estimator's own front end); the listener's answered fraction and
 end-to-end latency; the dissipated power of the answers and of ``predict`` at 10^5 random
-velocities. :func:`plot` writes the four figures, :func:`print_summary` the table.
+velocities. :func:`plot` writes the five figures (``friction_curves.png``: ``friction_plot``),
+:func:`print_summary` the table.
 """
 from __future__ import annotations
 
@@ -129,9 +130,10 @@ def evaluate(truth: dict, learn_s: float, model_path: str, lis, published: int,
         f_rand = [pool.submit(_power_at_random, model_path, vlim, c, i)
                   for i, c in enumerate(chunks)]
         # parametric baselines on the residual stream of the learned part
-        Qs, Rs = residual_stream(t[:k], truth['q'][:k], truth['qd'][:k], truth['effort'][:k],
-                                 urdf, names, PARAMS['accel_half_window_s'].default,
-                                 PARAMS['min_sample_interval_s'].default)
+        Qs, Rs, Ps = residual_stream(t[:k], truth['q'][:k], truth['qd'][:k],
+                                     truth['effort'][:k], urdf, names,
+                                     PARAMS['accel_half_window_s'].default,
+                                     PARAMS['min_sample_interval_s'].default, with_position=True)
         parts = [np.arange(i, n, workers) for i in range(workers)]
         f_fit = [pool.submit(_fit_joints, Qs[:, J], Rs[:, J]) for J in parts]
         model = load_model(model_path)
@@ -174,7 +176,7 @@ def evaluate(truth: dict, learn_s: float, model_path: str, lis, published: int,
                evaluation_seconds=_clock() - t0)
     arrays.update(latency_ms=out.pop('_latency_ms'), p_answers=out.pop('_p_answers'),
                   answers=out.pop('_answers'), p_random=p_rand, model=model,
-                  learned_box=(lo, hi))
+                  learned_box=(lo, hi), learned=(Qs, Rs, Ps))
     out['_arrays'] = arrays
     return out
 
@@ -233,11 +235,12 @@ def _short(name: str) -> str:
 
 
 def plot(res: dict, truth: dict, out_dir: str) -> List[str]:
-    """Write the four figures into ``out_dir``; return their paths."""
+    """Write the five figures into ``out_dir``; return their paths."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
+    from dgp_ros.apps.friction_plot import friction_curves
     from dgp_ros.dynamics.baselines import predict_sigmoid
     A, names = res['_arrays'], res['names']
     n = len(names)
@@ -296,6 +299,11 @@ def plot(res: dict, truth: dict, out_dir: str) -> List[str]:
     axes.flat[0].legend(loc='upper left', fontsize=6)
     fig.suptitle('friction vs velocity (shaded: the velocities learned)', fontsize=9)
     save(fig, 'friction_velocity.png')
+    Qs, Rs, Ps = A['learned']
+    if len(Qs):
+        conf = (getattr(model, 'grounds_', None) or {}).get('confidence')
+        files.append(str(friction_curves(os.path.join(out_dir, 'friction_curves.png'), model,
+                                         Qs, Rs, Ps, names, conf)))
 
     # 3. dissipated power of the answers and of predict at random velocities
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))

@@ -117,7 +117,8 @@ def fit_sigmoid(v, y, cv: dict) -> dict:
 
 
 def residual_stream(t, q, qd, effort, urdf_file: str, joints: Sequence[str],
-                    accel_half_window_s: float, min_sample_interval_s: float):
+                    accel_half_window_s: float, min_sample_interval_s: float,
+                    with_position: bool = False):
     """
     Return the residual samples the estimator's front end makes of a recording: (Qd, R).
 
@@ -133,11 +134,14 @@ def residual_stream(t, q, qd, effort, urdf_file: str, joints: Sequence[str],
         The N joints.
     accel_half_window_s, min_sample_interval_s : float
         The estimator's parameters of the same names [s].
+    with_position : bool
+        Return the samples' positions too.
 
     Returns
     -------
     Qd, R : numpy.ndarray, (n, N)
-        Velocities [rad/s] and residuals ``effort - tau_rb`` [N m] of the wanted samples.
+        Velocities [rad/s] and residuals ``effort - tau_rb`` [N m] of the wanted samples (and
+        their positions P [rad], (n, N), with ``with_position``).
 
     """
     from .filter import AccelFilter
@@ -147,7 +151,7 @@ def residual_stream(t, q, qd, effort, urdf_file: str, joints: Sequence[str],
     front = FrictionResidual(inv, AccelFilter(accel_half_window_s))
     dt = min_sample_interval_s
     last = None
-    Q, R = [], []
+    Q, R, P = [], [], []
     for i in range(len(t)):
         ti = float(t[i])
         want = not (dt > 0 and last is not None and last <= ti < last + dt * (1.0 - 1e-9))
@@ -156,5 +160,7 @@ def residual_stream(t, q, qd, effort, urdf_file: str, joints: Sequence[str],
         for r in front.push(ti, q[i], qd[i], effort[i], want=want):
             Q.append(r.qd)
             R.append(r.residual)
+            P.append(r.q)
     n = len(joints)
-    return np.array(Q).reshape(-1, n), np.array(R).reshape(-1, n)
+    out = np.array(Q).reshape(-1, n), np.array(R).reshape(-1, n)
+    return out + (np.array(P).reshape(-1, n),) if with_position else out

@@ -49,7 +49,7 @@ def test_robot_demo_quick_writes_the_held_out_numbers(tmp_path):
     assert s['random_velocities'] == 100_000
     assert s['random_negative_power_beyond_roundoff'] == 0
     for f in ('friction_vs_time.png', 'friction_velocity.png', 'dissipated_power_histogram.png',
-              'latency_histogram.png', 'friction.npz', 'answers.npz'):
+              'latency_histogram.png', 'friction_curves.png', 'friction.npz', 'answers.npz'):
         assert (out / f).stat().st_size > 0, f
     # both children have exited
     for name in ('estimator', 'arm_sim'):

@@ -1,0 +1,106 @@
+"""
+``friction_curves.png``: per joint, what was learned against velocity, beside the learned model.
+
+The picture a robot user asks for first: for each joint, the friction residual the estimator
+learned (``effort - tau_rb``, less the learned conservative correction ``dV/dq(q)`` of the
+rigid-body model, so that what is left is friction plus the joint's offset) against the joint's
+velocity; the learned model's curve there (its damping force with the other joints at rest,
+plus the offset, as the saved model answers: with its earned gains), its +-2 sigma band; its
+parametric part alone; a Coulomb + viscous + offset least-squares refit of the same samples
+(``baselines.fit_cv``); and in each title which elements of D the joint kept (``gp.select``)
+and the confidence it earned. numpy and matplotlib (Agg) only.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+__all__ = ['friction_curves']
+
+
+def _curves(model, qd: np.ndarray, j: int, k: int = 200):
+    """Return (v (k,), model, -+2 sigma (2, k), parametric part (k,)) along joint j's velocity."""
+    lo, hi = float(np.min(qd[:, j])), float(np.max(qd[:, j]))
+    pad = 0.1 * max(hi - lo, 1e-6)
+    v = np.linspace(lo - pad, hi + pad, k)
+    V = np.zeros((k, qd.shape[1]))
+    V[:, j] = v
+    tau, var = model.predict(V, return_var=True)
+    corr = getattr(model, 'correction_', None)
+    off = float(np.asarray(getattr(corr, 'offsets', np.zeros(qd.shape[1])))[j]) \
+        if corr is not None else 0.0
+    sd = np.sqrt(np.maximum(np.nan_to_num(var[:, j]), 0.0))
+    band = np.vstack([tau[:, j] - 2.0 * sd, tau[:, j] + 2.0 * sd]) + off
+    return v, tau[:, j] + off, band, model.mean_.force(V)[:, j] + off
+
+
+def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
+                    q: Optional[np.ndarray] = None, names: Optional[Sequence[str]] = None,
+                    confidence: Optional[Sequence[float]] = None) -> Path:
+    """
+    Write ``friction_curves.png`` (module docstring) to ``path``; return it.
+
+    Parameters
+    ----------
+    path : path-like
+        The PNG file to write.
+    model : fitted D-GP
+        The model to draw (a saved model answers with its earned gains).
+    qd, residual : (n, N)
+        The learned samples: velocities [rad/s] and residuals [N m].
+    q : (n, N) or None
+        Their poses [rad]: the learned conservative correction is taken off the residuals.
+    names : N str, optional
+        Joint names (default q0, q1, ...).
+    confidence : N floats, optional
+        The confidence each joint earned (shown in its title).
+
+    """
+    import matplotlib
+    matplotlib.use('Agg', force=True)
+    import matplotlib.pyplot as plt
+    from dgp_ros.dynamics.baselines import fit_cv, predict_cv
+    from dgp_ros.gp.select import row_choices
+
+    qd, residual = np.atleast_2d(qd), np.atleast_2d(residual)
+    N = qd.shape[1]
+    names = list(names) if names else [f'q{j}' for j in range(N)]
+    y = residual.copy()
+    corr = getattr(model, 'correction_', None)
+    if corr is not None and q is not None and getattr(corr, 'needs_position', False):
+        y = y - corr.conservative(np.atleast_2d(q))
+    post = model.posterior_
+    choice = row_choices(post.structure, post.hyper)
+    cols = 1 if N <= 2 else 2
+    rows = math.ceil(N / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6.0 * cols, 2.9 * rows), squeeze=False)
+    for j in range(N):
+        ax = axes[j // cols, j % cols]
+        ax.plot(qd[:, j], y[:, j], '.', ms=2, color='0.6', alpha=0.5, label='learned residual')
+        v, tau, band, prior = _curves(model, qd, j)
+        ax.fill_between(v, band[0], band[1], color='C0', alpha=0.15, lw=0, label='model ±2σ')
+        ax.plot(v, tau, color='C0', lw=1.6, label='learned model')
+        ax.plot(v, prior, color='C2', lw=1.0, ls='--', label='its parametric part')
+        if len(qd) >= 3:
+            cv = fit_cv(qd[:, j], y[:, j])
+            ax.plot(v, predict_cv(cv, v) + cv['b'], color='C3', lw=1.0, ls=':',
+                    label='Coulomb + viscous + offset refit')
+        c = '' if confidence is None or confidence[j] is None else \
+            f', confidence {float(confidence[j]):.2f}'
+        ax.set_title(f'{names[j]}: elements {choice[j]}{c}', fontsize=9)
+        ax.set_xlabel('velocity [rad/s]', fontsize=8)
+        ax.set_ylabel('[N m]', fontsize=8)
+        ax.grid(alpha=0.3)
+    for j in range(N, rows * cols):
+        axes[j // cols, j % cols].set_visible(False)
+    axes[0, 0].legend(loc='upper left', fontsize=7)
+    fig.suptitle('friction learned against velocity (the other joints at rest; residuals less '
+                 'the learned rigid-body correction)', fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
