@@ -125,7 +125,7 @@ class OneStep:
         return np.asarray(m.predict_residual(q=q[None, :], qd=qd[None, :]))[0]
 
     def _published(self, q, tau_hat):
-        """The published force plus the model's correction and offsets at q (N,)."""
+        """Return the published force plus the model's correction and offsets at q (N,)."""
         corr = getattr(self.est.model, 'correction_', None)
         return tau_hat if corr is None else tau_hat + np.asarray(corr(q[None, :]))[0]
 
