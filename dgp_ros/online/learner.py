@@ -418,12 +418,13 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
         """
         Save the current model atomically to ``path`` (default ``model_path``); returns it.
 
-        The model is copied under the lock and written outside it.
+        The model is copied under the lock and written outside it, once learning has stopped.
         """
         path = path or self.config.model_path
         if not path:
             raise ValueError('no path given and model_path is not set')
         check_model_path(path)
+        self.wait_stopped()
         with self._lock:
             if self._model is None:
                 raise RuntimeError('no trained model to save yet')

@@ -51,6 +51,29 @@ class LearningSwitch:
             return 'on'
         return 'stopping' if self._freeze_wanted or self._freezing else 'off'
 
+    #: how long a save waits for learning to stop (s)
+    STOP_WAIT_S = 60.0
+
+    def wait_stopped(self, timeout: float = STOP_WAIT_S) -> bool:
+        """
+        Wait (bounded) while learning is stopping; True when it is not (any more).
+
+        A save asked for meanwhile (``~/save_model``) writes the model that serves once it is
+        proven, not the one before. The freeze job itself saves without waiting.
+        """
+        import threading
+        import time
+        end = time.monotonic() + timeout
+        while self.learning_state == 'stopping' and time.monotonic() < end:
+            t = self._thread
+            if t is threading.current_thread():
+                return True             # the freeze's own save
+            if t is not None and t.is_alive():
+                t.join(min(0.05, max(0.0, end - time.monotonic())))
+            else:
+                time.sleep(0.005)
+        return self.learning_state != 'stopping'
+
     def _learning_switched(self, on: bool) -> None:
         """Under the lock, after ``config.learning`` changed to ``on``."""
         self._gains_seq += 1                    # the snapshot's gains switch memory (grounds)

@@ -195,3 +195,22 @@ def test_a_frozen_model_keeps_the_grounds_it_earned(tmp_path):
         np.abs(raw[:, 1] - ref[:, 1]).max() > 0.05 * np.abs(raw[:, 1]).max()
     assert np.all(np.einsum('ij,ij->i', Q[300:], ref) >= 0.0)
     est.close()
+
+
+def test_a_save_while_learning_stops_writes_the_model_that_then_serves(tmp_path):
+    # ~/save_model right after learning:=false: the file is the frozen model, proven and
+    # caught up, not the one before its proof (the freeze runs in the refit thread)
+    est = OnlineEstimator(_cfg(refit_mode='async', model_path=str(tmp_path / 'm.npz')))
+    t, Q, T = _stream(300, seed=2)
+    try:
+        _feed(est, t, Q, T)
+        assert est.wait_for_refit(60) and est.trained
+        _feed(est, t[-1] + 0.02 * np.arange(1, 41), Q[:40], T[:40])   # appended, unproven
+        est.set_learning(False)
+        path = est.save(str(tmp_path / 'now.npz'))
+        assert est.diagnostics()['learning'] == 'off'
+        saved = load_model(path)
+        assert np.array_equal(saved.posterior_.weights, est.model.posterior_.weights)
+        assert np.array_equal(saved.X_train_, est.model.X_train_)
+    finally:
+        est.close()
