@@ -59,16 +59,17 @@ class LearningSwitch:
         Wait (bounded) while learning is stopping; True when it is not (any more).
 
         A save asked for meanwhile (``~/save_model``) writes the model that serves once it is
-        proven, not the one before. The freeze job itself saves without waiting.
+        proven, not the one before. The freeze job itself saves without waiting (in line, with
+        ``refit_mode='sync'``, nothing else runs while it does).
         """
         import threading
         import time
         end = time.monotonic() + timeout
         while self.learning_state == 'stopping' and time.monotonic() < end:
             t = self._thread
-            if t is threading.current_thread():
-                return True             # the freeze's own save
-            if t is not None and t.is_alive():
+            if t is None or t is threading.current_thread():
+                break                   # in line, or the freeze's own save
+            if t.is_alive():
                 t.join(min(0.05, max(0.0, end - time.monotonic())))
             else:
                 time.sleep(0.005)
