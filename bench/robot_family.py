@@ -220,7 +220,7 @@ def check(label: str, r: dict) -> list:
     for key, base in (('vs_sigmoid', 'sigmoid'), ('vs_cv', 'cv')):
         if key in lim and not r['mean'] <= lim[key] * float(np.mean(r[base])):
             bad.append(f'{label}: held-out mean {r["mean"]:.4g} > {lim[key]} x the {base} '
-                       f'refit\'s {np.mean(r[base]):.4g}')
+                       f"refit's {np.mean(r[base]):.4g}")
     if 'vs_cv_joint' in lim:
         ratio = r['held'] / r['cv']
         bad += [f'{label}: joint {j} {ratio[j]:.3g} x the cv refit'
@@ -248,12 +248,12 @@ def _row(label: str, r: dict) -> list:
 
 def report(a, results: list, wall: float) -> str:
     lines = [C.header_lines(TITLE, 'bench/robot_family.py', a.quick, wall), '',
-             "The node's defaults in line (`refit_mode=sync`). Each case learns the first part of "
-             'a shared real log (Panda t < 7.5 s, UR10 t < 10 s; the Panda log also decimated to '
-             "500, 125 and 30 Hz) and its saved model's `predict_residual` is held out on the rest "
-             'of the shared part against the reference residual (NMSE, mean of the joints). '
-             'Refits: Coulomb + viscous + offset (cv) and Makkar sigmoid, offsets included, fitted '
-             'on the residual samples the estimator learned. Live: the published answers one step '
+             "The node's defaults in line (`refit_mode=sync`). Each case learns the first part "
+             'of a shared real log (Panda t < 7.5 s, UR10 t < 10 s; the Panda log also decimated '
+             "to 500, 125 and 30 Hz) and its saved model's `predict_residual` is held out on the "
+             'rest of the shared part against the reference residual (NMSE, mean of the joints). '
+             'Refits: Coulomb + viscous + offset (cv) and Makkar sigmoid, offsets included, '
+             'fitted on the residual samples the estimator learned. Live: the published answers one step '
              'ahead against the learned samples, per joint, beside answering zero. Limits of '
              '`test/test_robot_family.py`: ' + '; '.join(
                  f'{k}: ' + ', '.join(f'{n} {v}' for n, v in lim.items())

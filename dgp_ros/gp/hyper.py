@@ -122,11 +122,8 @@ def persistent(structure: Structure, X: np.ndarray, e: int) -> bool:
     return _sf2_floor(structure, X, e) >= PERSISTENT_SF2 * PERSISTENT_LEVEL ** 2
 
 
-#: a feature whose ``PERSISTENT_QUANTILE`` quantile is at least this fraction of its RMS is
-#: persistent (never near zero: ``persistent``): an A320's airspeed is at 0.9 and more; an arm's
-#: joint that has not reversed yet in its first seconds was at 0.3-0.7 (with 0.3 the simulated
-#: Panda in closed loop took couplings for 2 s, and its joint 5's error peaked at 1.073x that
-#: with no compensation)
+#: ``persistent`` at this fraction of the RMS in the quantile: an A320's airspeed is at 0.9; an
+#: arm joint not reversed yet was at 0.3-0.7 (0.3: the closed-loop Panda coupled for 2 s)
 PERSISTENT_LEVEL = 0.7
 
 
