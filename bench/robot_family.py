@@ -253,8 +253,9 @@ def report(a, results: list, wall: float) -> str:
              "to 500, 125 and 30 Hz) and its saved model's `predict_residual` is held out on the "
              'rest of the shared part against the reference residual (NMSE, mean of the joints). '
              'Refits: Coulomb + viscous + offset (cv) and Makkar sigmoid, offsets included, '
-             'fitted on the residual samples the estimator learned. Live: the published answers one step '
-             'ahead against the learned samples, per joint, beside answering zero. Limits of '
+             'fitted on the residual samples the estimator learned. Live: the published answers '
+             'one step ahead against the learned samples, per joint, beside answering zero. '
+             'Limits of '
              '`test/test_robot_family.py`: ' + '; '.join(
                  f'{k}: ' + ', '.join(f'{n} {v}' for n, v in lim.items())
                  for k, lim in LIMITS.items()) + '.', '',
