@@ -22,7 +22,7 @@ from .spec import ExportError, Spec
 __all__ = ['render', 'PAD']
 
 #: elements are padded to a multiple of this (zero weights) so the element loops vectorize
-PAD = 4
+PAD = 8
 
 
 def _lit(x) -> str:
@@ -200,8 +200,7 @@ def _correction_code(spec: Spec) -> str:
         '  gravity_torque(q, out);\n}\n')
 
 
-def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '', fast_exp: bool = True
-           ) -> str:
+def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
     """Return the header text of ``spec`` (module docstring); ``banner``: its comment lines."""
     if not namespace.replace('_', 'a').isalnum() or namespace[0].isdigit():
         raise ExportError(f'namespace {namespace!r} is not a C++ identifier')
@@ -228,8 +227,8 @@ def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '', fast_exp:
           f'constexpr bool GATE_PASSIVE = {"true" if spec.gate["passive"] else "false"};\n']
     if spec.clip_delta is not None:
         d.append(f'constexpr double PSD_DELTA = {_lit(spec.clip_delta)};\n')
-    d.append(R.EXP.substitute() if fast_exp else '')
-    d.append(R.KERNEL.substitute(exp='exp_neg' if fast_exp else 'std::exp'))
+    d.append(R.EXP.substitute())
+    d.append(R.KERNEL.substitute())
     d += [_prior_code(spec), _weight_code(spec)]
     if spec.clip_delta is not None:
         d.append(R.PSD_FLOOR.substitute())

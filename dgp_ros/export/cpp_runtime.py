@@ -11,41 +11,35 @@ from string import Template
 
 __all__ = ['EXP', 'KERNEL', 'PSD_FLOOR', 'PROJECT', 'GATE', 'CHAIN', 'TANH_OVER']
 
-#: exp(x) for x <= 0 in plain arithmetic (so the compiler may vectorize the kernel loop):
-#: Cody-Waite reduction by ln 2 and a degree-13 Taylor polynomial, within a few ulps of
-#: std::exp; exponents below -700 count as -700 (exp(-700) = 1e-304: nothing a float64 answer
-#: can hold, as gp/kernels.py's and online/plan.py's floors at -600)
-EXP = Template(r'''
-inline double exp_neg(double x) noexcept {
-  x = x < -700.0 ? -700.0 : x;
-  const double shift = 6755399441055744.0;  // 1.5 * 2^52: rounds x / ln 2 to an integer k
-  double kd = x * 1.4426950408889634 + shift;
-  std::uint64_t ki;
+#: exp(x) in plain arithmetic, on one number or a vector of them (GCC/clang vector extensions,
+#: so the element loop runs as SIMD where the target has it: SSE2, AVX, AVX-512, NEON):
+#: Cody-Waite reduction by ln 2 and a degree-13 Taylor polynomial in Estrin's form, within a few
+#: ulps of std::exp; exponents below -600 give 0 (online/plan.py's EXP_FLOOR: the kernel there
+#: is < 1e-260, nothing a float64 answer holds, and no subnormal number is ever made)
+EXP = Template(r"""
+template <class D, class U>
+inline void exp_floor(D& x, const D& zero) noexcept {  // in place (no vector argument ABI)
+  const D lo = zero - 600.0, shift = zero + 6755399441055744.0;  // 1.5 * 2^52: round to k
+  const D xc = x < lo ? lo : x;
+  D kd = xc * 1.4426950408889634 + shift;
+  U ki;
   std::memcpy(&ki, &kd, sizeof ki);
   kd -= shift;
-  const double r = (x - kd * 6.93147180369123816490e-01) - kd * 1.90821492927058770002e-10;
-  double p = 1.0 / 6227020800.0;
-  p = p * r + 1.0 / 479001600.0;
-  p = p * r + 1.0 / 39916800.0;
-  p = p * r + 1.0 / 3628800.0;
-  p = p * r + 1.0 / 362880.0;
-  p = p * r + 1.0 / 40320.0;
-  p = p * r + 1.0 / 5040.0;
-  p = p * r + 1.0 / 720.0;
-  p = p * r + 1.0 / 120.0;
-  p = p * r + 1.0 / 24.0;
-  p = p * r + 1.0 / 6.0;
-  p = p * r + 0.5;
-  p = p * r + 1.0;
-  p = p * r + 1.0;
-  std::uint64_t pb;
+  const D r = (xc - kd * 6.93147180369123816490e-01) - kd * 1.90821492927058770002e-10;
+  const D r2 = r * r, r4 = r2 * r2, r8 = r4 * r4;
+  const D a0 = 1.0 + r, a1 = 0.5 + r * (1.0 / 6.0), a2 = (1.0 / 24.0) + r * (1.0 / 120.0),
+          a3 = (1.0 / 720.0) + r * (1.0 / 5040.0), a4 = (1.0 / 40320.0) + r * (1.0 / 362880.0),
+          a5 = (1.0 / 3628800.0) + r * (1.0 / 39916800.0),
+          a6 = (1.0 / 479001600.0) + r * (1.0 / 6227020800.0);
+  const D p = ((a0 + a1 * r2) + (a2 + a3 * r2) * r4) + ((a4 + a5 * r2) + a6 * r4) * r8;
+  U pb;
   std::memcpy(&pb, &p, sizeof pb);
-  pb += ki << 52;  // times 2^k: k >= -1010, so the result stays a normal number
-  double out;
+  pb += ki << 52;  // times 2^k, k >= -866: a normal number
+  D out;
   std::memcpy(&out, &pb, sizeof out);
-  return out;
+  x = x < lo ? zero : out;
 }
-''')
+""")
 
 #: tanh(a / eps) / a, continuous at 0 (gp/means.py ``_tanh_over``)
 TANH_OVER = Template(r'''
@@ -55,24 +49,56 @@ inline double tanh_over(double a, double eps) noexcept {
 ''')
 
 #: the element corrections at one standardized query (gp/posterior.py ``_element_weights``):
-#: acc[e] = sum_j exp(-0.5 sum_d (x_d - X_jd)^2 il2_ed) v_je, elements innermost (contiguous)
-KERNEL = Template(r'''
+#: acc[e] = sum_j exp(-0.5 sum_d (x_d - X_jd)^2 il2_ed) v_je, eight elements per vector
+KERNEL = Template(r"""
+#if defined(__GNUC__) && !defined(DGP_EXPORT_SCALAR)
+typedef double vec8 __attribute__((vector_size(64)));
+typedef std::uint64_t uvec8 __attribute__((vector_size(64)));
 inline void element_sums(const double* x, double* acc) noexcept {
-  for (std::size_t e = 0; e < NE; ++e) acc[e] = 0.0;
-  double s[NE];
+  vec8 a[NE / 8], s, il, v;
+  const vec8 zero = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+  for (std::size_t b = 0; b < NE / 8; ++b) a[b] = zero;
   for (std::size_t j = 0; j < n_train; ++j) {
     double d2[N];
     for (std::size_t d = 0; d < N; ++d) {
       const double t = x[d] - X[j][d];
       d2[d] = t * t;
     }
-    for (std::size_t e = 0; e < NE; ++e) s[e] = d2[0] * IL2[0][e];
-    for (std::size_t d = 1; d < N; ++d)
-      for (std::size_t e = 0; e < NE; ++e) s[e] += d2[d] * IL2[d][e];
-    for (std::size_t e = 0; e < NE; ++e) acc[e] += $exp(-0.5 * s[e]) * V[j][e];
+    for (std::size_t b = 0; b < NE / 8; ++b) {
+      std::memcpy(&il, &IL2[0][8 * b], sizeof il);
+      s = d2[0] * il;
+      for (std::size_t d = 1; d < N; ++d) {
+        std::memcpy(&il, &IL2[d][8 * b], sizeof il);
+        s += d2[d] * il;
+      }
+      std::memcpy(&v, &V[j][8 * b], sizeof v);
+      s *= -0.5;
+      exp_floor<vec8, uvec8>(s, zero);
+      a[b] += s * v;
+    }
+  }
+  std::memcpy(acc, a, sizeof a);
+}
+#else
+inline void element_sums(const double* x, double* acc) noexcept {
+  for (std::size_t e = 0; e < NE; ++e) acc[e] = 0.0;
+  for (std::size_t j = 0; j < n_train; ++j) {
+    double d2[N];
+    for (std::size_t d = 0; d < N; ++d) {
+      const double t = x[d] - X[j][d];
+      d2[d] = t * t;
+    }
+    for (std::size_t e = 0; e < NE; ++e) {
+      double s = d2[0] * IL2[0][e];
+      for (std::size_t d = 1; d < N; ++d) s += d2[d] * IL2[d][e];
+      s *= -0.5;
+      exp_floor<double, std::uint64_t>(s, 0.0);
+      acc[e] += s * V[j][e];
+    }
   }
 }
-''')
+#endif
+""")
 
 #: the eigenvalue floor of the symmetric part (gp/psd.py ``psd_clip``, ``smooth_floor``):
 #: Gershgorin first, then a cyclic Jacobi eigen-decomposition of S = (D + D^T) / 2

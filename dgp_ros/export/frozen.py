@@ -129,7 +129,7 @@ def _banner(spec: Spec) -> str:
 
 
 def export_cpp(source, out=None, namespace: str = 'dgp_model', names=None,
-               correction: bool = True, fast_exp: bool = True) -> str:
+               correction: bool = True) -> str:
     """
     Write the header-only C++17 file of a frozen model; returns its text.
 
@@ -137,18 +137,16 @@ def export_cpp(source, out=None, namespace: str = 'dgp_model', names=None,
         FullDGP / DiagDGP; out : where to write it (None: only returned); namespace : the C++
         namespace of its functions; names : joint names (default: the correction's URDF joints,
         else ``joint_1..N``); correction : carry the correction and offsets (False: ``friction``
-        is the damping force alone); fast_exp : the kernel's exp in plain arithmetic (a few ulps
-        from std::exp; False: std::exp).
+        is the damping force alone).
     Raises ExportError (a ValueError) naming why a model cannot be exported and what to do.
     """
     spec, _ = header_spec(source, names, correction)
-    return write_header(spec, out, namespace, fast_exp)
+    return write_header(spec, out, namespace)
 
 
-def write_header(spec: Spec, out=None, namespace: str = 'dgp_model', fast_exp: bool = True
-                 ) -> str:
+def write_header(spec: Spec, out=None, namespace: str = 'dgp_model') -> str:
     """Render ``spec`` (``header_spec``) as the header text; write it to ``out`` if given."""
-    text = render(spec, namespace, _banner(spec), fast_exp)
+    text = render(spec, namespace, _banner(spec))
     if out is not None:
         out = os.fspath(out)
         d = os.path.dirname(os.path.abspath(out))

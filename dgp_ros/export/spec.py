@@ -214,7 +214,7 @@ def _correction(model, N: int) -> Optional[dict]:
         return None
     if isinstance(corr, SavedCorrection):
         import dgp_ros.dynamics  # noqa: F401 - registers the 'conservative' kind it owns
-        corr = rebuild_correction(corr.record)
+        corr = model.correction_ = rebuild_correction(corr.record)
     record = corr.to_dict() if hasattr(corr, 'to_dict') else None
     kind = (record or {}).get('kind', 'conservative')
     if kind != 'conservative' or not hasattr(corr, 'basis'):
