@@ -16,8 +16,9 @@ from typing import Iterable
 
 import numpy as np
 
-from . import cpp_runtime as R
-from .spec import ExportError, Spec
+from .cpp_runtime import CHAIN, EXP, GATE, KERNEL, PROJECT, PSD_FLOOR, TANH_OVER
+from .errors import ExportError
+from .spec import Spec
 
 __all__ = ['render', 'PAD']
 
@@ -64,8 +65,9 @@ def _prior_code(spec: Spec) -> str:
     coef, eps, vs = p['coef'], p['eps'], p['vs']
     K, S = int(p['K']), vs.shape[1]
     out = _const('PC', coef)
-    body = ['    const double a = std::fabs(qd[i]);', '    double out = PC[i][0];']
+    body = ['    double out = PC[i][0];']
     if K or S:
+        body.insert(0, '    const double a = std::fabs(qd[i]);')
         out += _const('PE', eps)
         body += [f'    out += PC[i][{1 + k}] * tanh_over(a, PE[i][{k}]);' for k in range(K)]
     if S:
@@ -74,8 +76,9 @@ def _prior_code(spec: Spec) -> str:
         for s in range(S):
             body += [f'    {{ const double r = a / PV[i][{s}];',
                      f'      out += PC[i][{1 + K + s}] * t * std::exp(-(r * r)); }}']
-    out += R.TANH_OVER.substitute() if (K or S) else ''
-    out += ('inline void prior_diag(const double* qd, double* md) noexcept {\n'
+    out += TANH_OVER.substitute() if (K or S) else ''
+    arg = 'qd' if K or S else ''
+    out += (f'inline void prior_diag(const double* {arg}, double* md) noexcept {{\n'
             '  for (std::size_t i = 0; i < N; ++i) {\n' + '\n'.join(body) +
             '\n    md[i] = out;\n  }\n}\n')
     return out
@@ -104,7 +107,7 @@ def _weight_code(spec: Spec) -> str:
 
 
 def _blend_code(spec: Spec) -> str:
-    """The earned gains' blend (gp/blend.py ``blend``), applied to (tau, D) in place."""
+    """Return ``blend``: the earned gains' blend (gp/blend.py), on (tau, D) in place."""
     if spec.grounds is None:
         return ''
     w, a = spec.grounds
@@ -145,7 +148,8 @@ def _answer_code(spec: Spec) -> str:
              '    corr[EM[e]] += acc[e] * x[EN[e]];',
              '    D[EM[e] * N + EN[e]] += w * (acc[e] * SYSX[e]);',
              '  }',
-             '  for (std::size_t i = 0; i < N; ++i) tau[i] = md[i] * qd[i] + (corr[i] * w) * SY[i];']
+             '  for (std::size_t i = 0; i < N; ++i)',
+             '    tau[i] = md[i] * qd[i] + (corr[i] * w) * SY[i];']
     if spec.clip_delta is not None:
         lines += ['  psd_floor(D);',
                   '  for (std::size_t i = 0; i < N; ++i) {',
@@ -195,7 +199,7 @@ def _correction_code(spec: Spec) -> str:
             _const('COORD', ch.coord, 'std::size_t') + _const('R0', ch.R0) +
             _const('P0', ch.p0) + _const('AXIS', ch.axis) + _const('GRAVITY', ch.gravity) +
             _const('TH_M', th[:, 0]) + _const('TH_H', th[:, 1:4]))
-    return out + R.CHAIN.substitute() + (
+    return out + CHAIN.substitute() + (
         'inline void conservative_part(const double* q, double* out) noexcept {\n'
         '  gravity_torque(q, out);\n}\n')
 
@@ -227,13 +231,13 @@ def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
           f'constexpr bool GATE_PASSIVE = {"true" if spec.gate["passive"] else "false"};\n']
     if spec.clip_delta is not None:
         d.append(f'constexpr double PSD_DELTA = {_lit(spec.clip_delta)};\n')
-    d.append(R.EXP.substitute())
-    d.append(R.KERNEL.substitute())
+    d.append(EXP.substitute())
+    d.append(KERNEL.substitute())
     d += [_prior_code(spec), _weight_code(spec)]
     if spec.clip_delta is not None:
-        d.append(R.PSD_FLOOR.substitute())
-    d.append(R.PROJECT.substitute())
-    d += [_blend_code(spec), _answer_code(spec), R.GATE.substitute(), _correction_code(spec)]
+        d.append(PSD_FLOOR.substitute())
+    d.append(PROJECT.substitute())
+    d += [_blend_code(spec), _answer_code(spec), GATE.substitute(), _correction_code(spec)]
     detail = ''.join(d)
     return _HEADER.format(
         banner=banner, guard=guard, ns=namespace, N=N, n=spec.n, E=E,
@@ -243,7 +247,7 @@ def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
         detail=detail)
 
 
-_HEADER = '''\
+_HEADER = """\
 {banner}
 #ifndef {guard}
 #define {guard}
@@ -337,4 +341,4 @@ inline void model_residual(const double* q, const double* qd, double* tau) noexc
 }}  // namespace {ns}
 
 #endif  // {guard}
-'''
+"""

@@ -42,11 +42,11 @@ inline void exp_floor(D& x, const D& zero) noexcept {  // in place (no vector ar
 """)
 
 #: tanh(a / eps) / a, continuous at 0 (gp/means.py ``_tanh_over``)
-TANH_OVER = Template(r'''
+TANH_OVER = Template(r"""
 inline double tanh_over(double a, double eps) noexcept {
   return a < 1e-6 * eps ? 1.0 / eps : std::tanh(a / eps) / a;
 }
-''')
+""")
 
 #: the element corrections at one standardized query (gp/posterior.py ``_element_weights``):
 #: acc[e] = sum_j exp(-0.5 sum_d (x_d - X_jd)^2 il2_ed) v_je, eight elements per vector
@@ -102,7 +102,7 @@ inline void element_sums(const double* x, double* acc) noexcept {
 
 #: the eigenvalue floor of the symmetric part (gp/psd.py ``psd_clip``, ``smooth_floor``):
 #: Gershgorin first, then a cyclic Jacobi eigen-decomposition of S = (D + D^T) / 2
-PSD_FLOOR = Template(r'''
+PSD_FLOOR = Template(r"""
 inline void psd_floor(double* D) noexcept {
   double S[N][N];
   for (std::size_t i = 0; i < N; ++i)
@@ -167,11 +167,11 @@ inline void psd_floor(double* D) noexcept {
       D[i * N + j] += add;
     }
 }
-''')
+""")
 
 #: the W-norm projection onto qd . tau >= 0 (gp/policy.py ``_project``, ``projection_lambda``,
 #: ``project_passive``); ``dq``: D qd when the caller has computed it apart from tau
-PROJECT = Template(r'''
+PROJECT = Template(r"""
 inline double power(const double* q, const double* t) noexcept {
   double p = 0.0;
   for (std::size_t i = 0; i < N; ++i) p += q[i] * t[i];
@@ -214,12 +214,12 @@ inline void project(const double* q, double* tau, double* D, const double* dq) n
     for (std::size_t i = 0; i < N; ++i) tau[i] += k * (q[i] * W_INV[i]);
   }
 }
-''')
+""")
 
 #: the frozen node's output gate (online/answer.py ``_gate``, ``_prior``, ``_bound``):
 #: non-finite or non-passive answers replaced by the fallback a m_d(qd) qd, answers beyond
 #: the learned force (or the prior's own force inside the learned box) scaled down
-GATE = Template(r'''
+GATE = Template(r"""
 inline void gate(const double* q, double* tau, double* D, bool check_d) noexcept {
   bool bad = false;
   for (std::size_t i = 0; i < N; ++i) bad = bad || !std::isfinite(tau[i]);
@@ -274,10 +274,10 @@ inline void gate(const double* q, double* tau, double* D, bool check_d) noexcept
     for (std::size_t j = 0; j < N; ++j) D[i * N + j] *= s[i];
   }
 }
-''')
+""")
 
 #: the gravity torque of a kinematic tree of revolute joints (export/kinematics.py)
-CHAIN = Template(r'''
+CHAIN = Template(r"""
 inline void gravity_torque(const double* q, double* out) noexcept {
   double R[J][3][3], p[J][3], mass[J], mom[J][3];
   for (std::size_t i = 0; i < J; ++i) {
@@ -327,4 +327,4 @@ inline void gravity_torque(const double* q, double* out) noexcept {
                     z[2] * (v[0] * gy - v[1] * gx);
   }
 }
-''')
+""")

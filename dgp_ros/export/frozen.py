@@ -23,7 +23,8 @@ from dgp_ros import __version__
 from dgp_ros.gp import load_model
 
 from .cpp import render
-from .spec import ExportError, model_spec, prove_as_node, Spec
+from .errors import ExportError
+from .spec import model_spec, prove_as_node, Spec
 
 __all__ = ['served_model', 'export_cpp', 'header_spec', 'write_header', 'check_correction']
 
@@ -52,7 +53,7 @@ def served_model(path) -> Tuple[object, str]:
 
 
 def _as_path(source, tmpdir: str) -> str:
-    """A path to a model file for ``source`` (a path, or a fitted model saved to ``tmpdir``)."""
+    """Return a model file path for ``source`` (a path, or a fitted model saved to ``tmpdir``)."""
     if isinstance(source, (str, os.PathLike)):
         return os.fspath(source)
     if hasattr(source, 'set_learning') or hasattr(source, 'adopt'):

@@ -22,7 +22,7 @@ from typing import List
 
 import numpy as np
 
-from .spec import ExportError
+from .errors import ExportError
 
 __all__ = ['Chain', 'chain_of', 'gravity_torque', 'axis_rotation']
 

@@ -27,15 +27,13 @@ from dgp_ros.gp.means import BasisFrictionMean, FrictionMean, ViscousMean
 from dgp_ros.gp.passivity import NonePolicy, PaperPolicy, policy_class, ProjectedPolicy
 from dgp_ros.gp.persistence import rebuild_correction, SavedCorrection
 
+from .errors import ExportError
+
 __all__ = ['ExportError', 'Spec', 'Element', 'model_spec', 'prove_as_node', 'BOUND_FACTOR']
 
 #: the output gate's factor on the largest learned force (``online.answer.BOUND_FACTOR``; the
 #: export does not import the online layer: test/export checks that the two agree)
 BOUND_FACTOR = 1.5
-
-
-class ExportError(ValueError):
-    """A model the header cannot carry: the message says why and what to do."""
 
 
 @dataclass
@@ -114,7 +112,7 @@ def prove_as_node(model) -> str:
 
 
 def _prior(mean, N: int) -> dict:
-    """The prior's damping ``m_d`` in the general form of ``means._friction_diag``."""
+    """Return the prior's damping ``m_d`` in the general form of ``means._friction_diag``."""
     if isinstance(mean, ViscousMean):
         return {'coef': np.asarray(mean.m_d, float).reshape(N, 1), 'eps': np.zeros((N, 1)),
                 'vs': np.zeros((N, 0)), 'K': 0}
@@ -133,7 +131,7 @@ def _prior(mean, N: int) -> dict:
 
 
 def _weight(pol) -> tuple:
-    """The policy's correction weight as a record (``PassivityPolicy.weight``)."""
+    """Return the policy's correction weight as a record (``PassivityPolicy.weight``)."""
     if isinstance(pol, CertifiedPolicy):
         if pol.blend_on and pol.domain is not None and not (pol.cert is not None and
                                                             pol.cert.stale):
@@ -208,7 +206,7 @@ def model_spec(model, names: Optional[List[str]] = None, proof: str = '') -> Spe
 
 
 def _correction(model, N: int) -> Optional[dict]:
-    """The correction's constants (offsets, basis), or None; ExportError where impossible."""
+    """Return the correction's constants (offsets, basis) or None; ExportError if impossible."""
     corr = getattr(model, 'correction_', None)
     if corr is None:
         return None

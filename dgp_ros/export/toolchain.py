@@ -27,7 +27,7 @@ OUTPUTS = (('model_damping', 1), ('damping', 1), ('model_damping_matrix', 'NN'),
            ('friction', 1), ('model_residual', 1))
 
 #: reads k rows of (q, qd) as float64 from argv[1], writes every answer to argv[2]
-DRIVER = r'''
+DRIVER = r"""
 #include DGP_HEADER
 #include <cstdio>
 #include <vector>
@@ -60,7 +60,7 @@ int main(int argc, char** argv) {
   std::fclose(in);
   return std::fclose(out) == 0 ? 0 : 4;
 }
-'''
+"""
 
 
 class CompileError(RuntimeError):
