@@ -195,7 +195,8 @@ def run_case(case, quick, d):
         r[f'{side}_py'] = rel(model.predict(Qd[same]), tau[same]) if same.any() else 0.0
         r[f'{side}_negative'] = int((np.einsum('ij,ij->i', Qd, out['damping']) < 0).sum() +
                                     (np.einsum('ij,ij->i', Qd, out['model_damping']) < 0).sum())
-        r[f'{side}_bounded'] = int((np.abs(out['damping'] - out['model_damping']) > 0).any(1).sum())
+        moved = np.abs(out['damping'] - out['model_damping']) > 0
+        r[f'{side}_bounded'] = int(moved.any(axis=1).sum())
         r['node_guarantee'] = g
     r['K'] = K
     r['py_us'] = python_call_us(model, rng)
