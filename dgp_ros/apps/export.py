@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     ap.add_argument('--cpp', required=True, metavar='OUT.hpp', help='the header to write')
     ap.add_argument('--namespace', default='dgp_model',
                     help='C++ namespace of the generated functions (default dgp_model)')
-    ap.add_argument('--joints', help='comma-separated joint names, in the model\'s order '
+    ap.add_argument('--joints', help="comma-separated joint names, in the model's order "
                                      '(default: the URDF joints of its correction, else '
                                      'joint_1..N)')
     ap.add_argument('--no-correction', action='store_true',
