@@ -39,6 +39,7 @@ setup(
             'dgp-controller = dgp_ros.nodes.controller:main',
             'dgp-demo = dgp_ros.apps.demo:main',
             'dgp-replay = dgp_ros.apps.replay:main',
+            'dgp-export = dgp_ros.apps.export:main',
             'dgp-record = dgp_ros.bags.cli:record_main',
             'dgp-play = dgp_ros.bags.cli:play_main',
         ],

@@ -269,3 +269,13 @@ def test_no_harm_quick(tmp_path):
     assert t['dgp_restart']['after_restart_ratios'], t['dgp_restart']
     for w in j['confidence_windows'].values():
         assert all(0.0 <= c <= 1.0 for row in w for c in row)
+
+
+@pytest.mark.slow
+def test_cpp_export_quick(tmp_path):
+    import shutil
+    run('cpp_export.py', tmp_path)
+    if shutil.which('g++') is None:
+        return
+    s = section(tmp_path, 'cpp_export')
+    assert 'friction()' in s and '| A320' in s

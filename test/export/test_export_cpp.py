@@ -1,0 +1,290 @@
+"""
+Generated C++ of frozen models against Python and the frozen node (issue 43).
+
+Three models, each trained once per module on short data: a Full-D arm model (7 joints, the
+eigenvalue floor ``psd-clip``, earned gains below 1: the per-joint blend), a Diag arm model with
+a URDF regressor correction and offsets (the Panda's kinematics) and an A320 model (3 velocities,
+a domain proof: the C2 blend). Each header is compiled with the system compiler
+(``-std=c++17 -Wall -Wextra -Werror -O2``; skipped with the reason where there is none) and
+evaluated on random velocities inside the data and 10-30x outside, against
+``load_model(M)`` proven as the node proves it (``predict``, ``damping_matrix``,
+``predict_residual``) and against the frozen node's published answers
+(``OnlineEstimator(learning=False, model_path=M)``): relative error below 1e-9, no negative
+power. Refusals, the tool's exit status, the example program and the exp are tested too.
+"""
+import os
+import subprocess
+
+import numpy as np
+import pytest
+
+from dgp_ros.export import export_cpp, ExportError, header_spec, write_header
+from dgp_ros.export.toolchain import compile_program, driver, evaluate, find_compiler
+
+pytestmark = pytest.mark.xdist_group('export_cpp')      # one worker builds the models
+
+CXX = find_compiler()
+needs_cxx = pytest.mark.skipif(CXX is None, reason='no C++ compiler (g++, clang++, c++ or CXX)')
+EXAMPLE = os.path.join(os.path.dirname(__file__), '..', '..', 'examples', 'cpp',
+                       'friction_along_log.cpp')
+TOL = 1e-9
+
+
+def rel(a, b) -> float:
+    """Largest error per answer relative to that answer's largest entry."""
+    a, b = np.asarray(a).reshape(len(a), -1), np.asarray(b).reshape(len(b), -1)
+    return float((np.abs(a - b).max(axis=1) / np.maximum(np.abs(b).max(axis=1), 1e-300)).max())
+
+
+def _arm_data(n=80, N=7, coupling=1.0, seed=0):
+    rng = np.random.default_rng(seed)
+    Qd = rng.normal(0.0, 0.6, (n, N))
+    Tau = (0.3 * Qd + 0.3 * np.tanh(Qd / 0.05) + coupling * np.roll(Qd, 1, axis=1)
+           * np.sin(3.0 * Qd) + 0.02 * rng.normal(size=(n, N)))
+    return Qd, Tau
+
+
+def _grounds(N, seed):
+    rng = np.random.default_rng(seed)
+    return {'model_weight': rng.uniform(0.2, 1.0, N).tolist(),
+            'prior_gain': rng.uniform(0.5, 1.0, N).tolist(), 'confidence': [1.0] * N}
+
+
+@pytest.fixture(scope='module')
+def models(tmp_path_factory):
+    """Train the three models once (module docstring); their files by name."""
+    from dgp_ros.dynamics import example_robot_urdf, UrdfInverseDynamics
+    from dgp_ros.dynamics.conservative import Correction, RegressorBasis
+    from dgp_ros.gp import DiagDGP, FullDGP
+    from sim_bridge import SimConfig, simulate_approach
+    d = tmp_path_factory.mktemp('export_models')
+    out = {}
+    m = FullDGP(prior='friction', n_restarts=0, max_opt_samples=80).fit(*_arm_data())
+    assert m.certificate().method == 'psd-clip'
+    m.grounds_ = _grounds(7, 1)
+    out['full_arm'] = str(d / 'full_arm.npz')
+    m.save(out['full_arm'])
+    m = DiagDGP(prior='friction+stribeck', n_restarts=0).fit(*_arm_data(coupling=0.2, seed=1))
+    names = [f'panda_joint{j}' for j in range(1, 8)]
+    with open(example_robot_urdf('panda'), encoding='utf-8') as f:
+        urdf = f.read()
+    basis = RegressorBasis(UrdfInverseDynamics(urdf=urdf, joints=names), 'test', urdf)
+    theta = np.random.default_rng(2).normal(0.0, 0.3, basis.C)
+    m.correction_ = Correction(basis, theta, np.linspace(-0.5, 0.7, 7))
+    m.grounds_ = _grounds(7, 3)
+    out['diag_arm'] = str(d / 'diag_arm.npz')
+    m.save(out['diag_arm'])
+    f = simulate_approach(SimConfig())
+    idx = np.arange(0, 900, 15)
+    m = FullDGP(prior='viscous', n_restarts=0).fit(f['q'][idx], f['tau'][idx])
+    out['a320'] = str(d / 'a320.npz')
+    m.save(out['a320'])
+    return out
+
+
+@pytest.fixture(scope='module')
+def built(models, tmp_path_factory):
+    """Return {name: (spec, proven model, driver executable, workdir)}, compiled once."""
+    if CXX is None:
+        pytest.skip('no C++ compiler (g++, clang++, c++ or CXX)')
+    out = {}
+    for name, path in models.items():
+        d = str(tmp_path_factory.mktemp(f'cpp_{name}'))
+        spec, model = header_spec(path)
+        hdr = os.path.join(d, 'model.hpp')
+        write_header(spec, hdr)
+        out[name] = (spec, model, driver(hdr, d, CXX), d, path)
+    return out
+
+
+def _velocities(model, k, seed, far):
+    rng = np.random.default_rng(seed)
+    X = model.X_train_
+    c, r = 0.5 * (X.max(0) + X.min(0)), 0.5 * (X.max(0) - X.min(0))
+    if not far:
+        return rng.uniform(c - r, c + r, (k, X.shape[1]))
+    u = rng.normal(size=(k, X.shape[1]))
+    u /= np.abs(u).max(axis=1, keepdims=True)
+    return c + r * u * rng.uniform(10.0, 30.0, (k, 1))
+
+
+def _node_answers(spec, path, Qd):
+    """Return the frozen node's published (tau_hat, D) at each velocity (in line, no DDS)."""
+    from dgp_ros.online import EstimatorConfig, OnlineEstimator
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync', learning=False, model_path=path,
+                                          model=spec.kind, passivity=spec.passivity,
+                                          joints=spec.names))
+    try:
+        assert est.diagnostics().get('guarantee') == spec.guarantee
+        res = [est.process(float(i), spec.names, Qd[i], np.zeros(spec.N)) for i in range(len(Qd))]
+    finally:
+        est.close()
+    return np.array([e.tau_hat for e in res]), np.array([e.D for e in res])
+
+
+def test_guarantees_as_proven(built):
+    assert built['full_arm'][0].guarantee == 'psd' and built['full_arm'][0].clip_delta
+    assert built['full_arm'][0].per_joint and built['full_arm'][0].grounds is not None
+    assert built['diag_arm'][0].correction['basis'] == 'regressor'
+    assert built['a320'][0].guarantee == 'passive-on-domain'
+    assert built['a320'][0].weight[0] == 'domain'
+
+
+@pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320'])
+@pytest.mark.parametrize('far', [False, True], ids=['inside', 'outside'])
+def test_equals_python_and_frozen_node(built, name, far):
+    spec, model, exe, d, path = built[name]
+    Qd = _velocities(model, 1000, 7 + far, far)
+    Q = np.random.default_rng(5).uniform(-np.pi, np.pi, Qd.shape)
+    out = evaluate(exe, Q, Qd, d)
+    assert rel(out['model_damping'], model.predict(Qd)) < TOL
+    assert rel(out['model_damping_matrix'], model.damping_matrix(Qd)) < TOL
+    assert rel(out['model_residual'], model.predict_residual(q=Q, qd=Qd)) < TOL
+    tau, D = _node_answers(spec, path, Qd[:300])
+    assert rel(out['damping'][:300], tau) < TOL
+    assert rel(out['damping_matrix'][:300], D) < TOL
+    assert rel(out['friction'], out['damping'] + out['correction']) < 1e-15
+    for key in ('damping', 'model_damping', 'friction'):
+        if key == 'friction' and spec.correction is not None:
+            continue                     # the correction is conservative, not dissipative
+        assert int((np.einsum('ij,ij->i', Qd, out[key]) < 0).sum()) == 0, key
+    if far:
+        assert np.any(np.abs(out['damping'] - out['model_damping']) > 0), 'gate never acted'
+
+
+def test_correction_matches_the_regressor(built):
+    spec, model, exe, d, _ = built['diag_arm']
+    Q = np.random.default_rng(9).uniform(-np.pi, np.pi, (200, 7))
+    out = evaluate(exe, Q, np.zeros_like(Q), d)
+    assert rel(out['conservative'], model.correction_.conservative(Q)) < TOL
+    assert rel(out['correction'], model.correction_(Q)) < TOL
+
+
+def test_a_changed_constant_is_seen(built, tmp_path):
+    """Show that the comparison can fail: one weight changed by 1e-6 shows."""
+    spec, model, _, _, _ = built['diag_arm']
+    spec.elements[0].v = spec.elements[0].v * (1.0 + 1e-6)
+    try:
+        hdr = str(tmp_path / 'bad.hpp')
+        write_header(spec, hdr)
+        exe = driver(hdr, str(tmp_path), CXX)
+    finally:
+        spec.elements[0].v = spec.elements[0].v / (1.0 + 1e-6)
+    Qd = _velocities(model, 200, 3, False)
+    out = evaluate(exe, Qd, Qd, str(tmp_path))
+    assert rel(out['model_damping'], model.predict(Qd)) > 1e-8
+
+
+@pytest.mark.parametrize('variant', ['scalar', 'clang++'])
+def test_other_builds(built, tmp_path, variant):
+    """The scalar fallback (no vector extensions) and clang++ give the same answers."""
+    spec, model, _, _, path = built['full_arm']
+    cxx, flags = CXX, ('-O2', '-DDGP_EXPORT_SCALAR')
+    if variant == 'clang++':
+        cxx, flags = find_compiler(('clang++',)) if 'clang' not in CXX else CXX, ('-O2',)
+        if cxx is None or 'clang' not in os.path.basename(cxx):
+            pytest.skip('clang++ not installed')
+    hdr = str(tmp_path / 'm.hpp')
+    write_header(spec, hdr)
+    exe = driver(hdr, str(tmp_path), cxx, flags=flags)
+    Qd = _velocities(model, 300, 11, False)
+    out = evaluate(exe, Qd, Qd, str(tmp_path))
+    assert rel(out['model_damping'], model.predict(Qd)) < TOL
+
+
+@needs_cxx
+def test_exp_is_within_a_few_ulps(tmp_path):
+    from dgp_ros.export import cpp_runtime as R
+    src = ('#include <cmath>\n#include <cstdint>\n#include <cstring>\n#include <cstdio>\n'
+           + R.EXP.substitute() + r"""
+int main() {
+  double worst = 0.0;
+  for (int i = 0; i <= 2000000; ++i) {
+    double x = -600.0 * i / 2000000.0, y = x;
+    exp_floor<double, std::uint64_t>(y, 0.0);
+    const double r = std::fabs(y - std::exp(x)) / std::exp(x);
+    worst = r > worst ? r : worst;
+  }
+  double z = -600.5;
+  exp_floor<double, std::uint64_t>(z, 0.0);
+  std::printf("%.3e %g\n", worst, z);
+}
+""")
+    exe = compile_program(src, str(tmp_path / 'exp'), CXX)
+    worst, below = subprocess.run([exe], capture_output=True, text=True, check=True).stdout.split()
+    assert float(worst) < 2e-15 and float(below) == 0.0
+
+
+@needs_cxx
+def test_example_program_times_a_logged_trajectory(built, tmp_path):
+    spec, model, _, _, path = built['diag_arm']
+    export_cpp(path, tmp_path / 'friction_model.hpp')
+    exe = compile_program(open(EXAMPLE, encoding='utf-8').read(), str(tmp_path / 'example'),
+                          CXX, include=(str(tmp_path),))
+    Qd = _velocities(model, 300, 13, False)
+    Q = np.random.default_rng(3).uniform(-1.0, 1.0, Qd.shape)
+    np.savetxt(tmp_path / 'log.csv', np.hstack([Q, Qd]), delimiter=',', header='q, qd')
+    r = subprocess.run([exe, str(tmp_path / 'log.csv'), str(tmp_path / 'out.csv')],
+                       capture_output=True, text=True, check=True)
+    assert 'us per call' in r.stdout
+    got = np.loadtxt(tmp_path / 'out.csv', delimiter=',')
+    assert rel(got, model.predict_residual(q=Q, qd=Qd)) < TOL  # inside: the gate is silent
+
+
+def test_refusals(models, tmp_path):
+    from dgp_ros.dynamics.conservative import Correction
+    from dgp_ros.gp import ArdGP, load_model
+    from dgp_ros.gp.persistence import SavedCorrection
+    from dgp_ros.online import EstimatorConfig, OnlineEstimator
+    ard = ArdGP(n_restarts=0).fit(*_arm_data(n=30, N=2))
+    with pytest.raises(ExportError, match='ARD'):
+        export_cpp(ard)
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync'))
+    with pytest.raises(ExportError, match='still learning'):
+        export_cpp(est)
+    est.close()
+    m = load_model(models['a320'])
+    m.correction_ = SavedCorrection({'kind': 'my_plugin', 'params': [1.0]})
+    with pytest.raises(ExportError, match='my_plugin.*--no-correction'):
+        export_cpp(m)
+    assert 'namespace dgp_model' in export_cpp(m, correction=False)
+    m.correction_ = Correction(None, np.zeros(0), np.ones(3))
+    with pytest.raises(ExportError, match='2 joint names'):
+        export_cpp(m, names=['a', 'b'])
+    with pytest.raises(ExportError, match='not a model file'):
+        export_cpp(str(tmp_path / 'missing.npz'))
+
+
+def test_non_revolute_joint_refused():
+    from dgp_ros.dynamics import UrdfInverseDynamics
+    from dgp_ros.dynamics.conservative import RegressorBasis
+    from dgp_ros.export.kinematics import chain_of
+    link = '<link name="{0}"><inertial><mass value="1"/><origin xyz="0 0 0.1"/>' \
+           '<inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+    urdf = ('<robot name="r">' + link.format('base') + link.format('l1') + link.format('l2') +
+            '<joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>'
+            '<axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>'
+            '<joint name="j2" type="prismatic"><parent link="l1"/><child link="l2"/>'
+            '<axis xyz="1 0 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+            '</robot>')
+    basis = RegressorBasis(UrdfInverseDynamics(urdf=urdf), 'test', urdf)
+    with pytest.raises(ExportError, match="'j2' is a JointModelP.*revolute"):
+        chain_of(basis)
+
+
+def test_gate_factor_is_the_nodes():
+    from dgp_ros.export.spec import BOUND_FACTOR
+    from dgp_ros.online import answer
+    assert BOUND_FACTOR == answer.BOUND_FACTOR
+
+
+def test_console_tool(models, tmp_path):
+    from dgp_ros.apps.export import main
+    assert main([models['diag_arm'], '--cpp', str(tmp_path / 'a.hpp')]) == 0
+    text = (tmp_path / 'a.hpp').read_text()
+    assert 'panda_joint7' in text and 'Guarantee: psd' in text
+    assert main([str(tmp_path / 'none.npz'), '--cpp', str(tmp_path / 'b.hpp')]) == 2
+    assert main([models['a320'], '--cpp', str(tmp_path / 'c.hpp'), '--joints', 'x,y']) == 2
+    with pytest.raises(SystemExit) as e:
+        main(['--help'])
+    assert e.value.code == 0
