@@ -166,6 +166,12 @@ class _Memory:
         self.yy, self.ty, self.ttm = one.copy(), bc * n, bc * bc * n
         self.n_prior = self.n_model = float(n)
         self.a, self.w, self.g = a.copy(), w.copy(), c.copy()
+        # errors that say what the gains say (``Skill.long_gains``: a part at full gain did no
+        # worse than its fallback), until samples move them
+        one = np.ones(a.size)
+        self.mse0, self.msef = one.copy(), one.copy()
+        self.msep = np.where(a >= 1.0, 0.5, 2.0)
+        self.msem = np.where(w >= 1.0, 0.5, 2.0)
 
 
 class Skill:

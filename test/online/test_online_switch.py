@@ -195,6 +195,12 @@ def test_a_frozen_model_keeps_the_grounds_it_earned(tmp_path):
         np.abs(raw[:, 1] - ref[:, 1]).max() > 0.05 * np.abs(raw[:, 1]).max()
     assert np.all(np.einsum('ij,ij->i', Q[300:], ref) >= 0.0)
     est.close()
+    # a node started frozen on that file answers the same (the gains come from the file)
+    frozen = OnlineEstimator(_cfg(model_path=path, elements='all', prior='viscous',
+                                  learning=False))
+    got = np.array([e.tau_hat for e in _feed(frozen, t[300:], Q[300:], T[300:])])
+    assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
+    frozen.close()
 
 
 def test_a_save_while_learning_stops_writes_the_model_that_then_serves(tmp_path):
