@@ -1,0 +1,74 @@
+"""
+An honest status (issue 42): what goes wrong reaches /diagnostics as a WARN with its reason.
+
+Refits that fail or are rejected at a rate (a UR10 with 4 of 9 failed said 'ok'), samples a
+learner fell behind on, a stream too slow for the acceleration filter (and the 30 Hz one that
+used to train nothing now trains), a model that answers worse than its parametric part. Each
+condition is built and then taken away: the reason comes and goes with it.
+"""
+import numpy as np
+
+from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, simulate_arm
+from dgp_ros.online import EstimatorConfig, OK, OnlineEstimator, WARN
+from dgp_ros.online.grounds import Skill
+from dgp_ros.online.health import Health
+
+NAMES = list(ARM_JOINTS['panda'])
+STATE = {'trained': True, 'fill': 100, 'min_samples': 20, 'certifies': True, 'certified': True,
+         'stale': False, 'load_error': '', 'warnings': [], 'learning': 'on'}
+
+
+def test_a_third_of_the_recent_refits_failing_is_a_warning():
+    h = Health()
+    learner = {'recent_refits': 9, 'recent_refits_failed': 2, 'consecutive_refit_failures': 0}
+    assert h.status(learner, STATE) == (OK, 'ok')
+    level, msg = h.status(dict(learner, recent_refits_failed=3), STATE)
+    assert level == WARN and '3 of the last 9 refits failed or were rejected' in msg, msg
+
+
+def test_samples_a_learner_dropped_since_the_last_report_are_a_warning():
+    h = Health()
+    assert h.status({'samples_dropped': 0}, STATE)[0] == OK
+    level, msg = h.status({'samples_dropped': 40}, STATE)
+    assert level == WARN and '40 samples dropped' in msg and 'too little CPU' in msg, msg
+    assert h.status({'samples_dropped': 40}, STATE)[0] == OK    # none new since
+
+
+def _arm(rate_hz, seconds=8.0):
+    d = simulate_arm('panda', duration_s=seconds, seed=1)
+    keep = np.flatnonzero(np.diff(np.floor(d['t'] * rate_hz), prepend=-1.0) > 0)
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync', inverse_dynamics='urdf',
+                                          urdf_file=example_robot_urdf('panda'), joints=NAMES,
+                                          buffer_size=60))
+    for i in keep:
+        est.process(float(d['t'][i]), NAMES, d['qd'][i], d['effort'][i], d['q'][i])
+    diag = est.diagnostics()
+    est.close()
+    return diag
+
+
+def test_a_stream_too_slow_for_the_filter_says_so_and_30_hz_trains():
+    d = _arm(5.0)
+    assert d['level'] == WARN and 'too slow for the acceleration filter' in d['message'], d
+    assert 'publish joint_states at 10 Hz or more' in d['message'] and d['samples_added'] == 0
+    d = _arm(30.0)
+    assert d['trained'] and d['samples_added'] > 150, d
+    assert 'too slow' not in d['message'], d['message']
+
+
+def test_a_model_worse_than_its_parametric_part_is_named():
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync', min_samples=10, buffer_size=60))
+    rng = np.random.default_rng(0)
+    for i in range(100):
+        q = rng.normal(size=2)
+        est.process(0.01 * i, ['a', 'b'], q, 2.0 * q)
+    assert est.trained and 'worse than its parametric part' not in est.diagnostics()['message']
+    # the one-step record of a model that misses joint b where its prior is right
+    skill = Skill(2)
+    for i in range(800):
+        t = rng.normal(size=2)
+        skill.note(t, t + np.array([0.01, 2.0]) * rng.normal(size=2), t, stamp=0.01 * i)
+    est.learner._skill = skill
+    d = est.diagnostics()
+    assert d['level'] == WARN and 'worse than its parametric part on b' in d['message'], d
+    est.close()
