@@ -20,8 +20,10 @@ parameter call waits for it):
 
 Until step 3 is done ``status()['learning']`` is 'stopping' and the answers come from the model
 as it was (with its guarantee then); afterwards 'off', with the proven guarantee, and every
-answer comes from exactly the saved model: no blend toward the fallback (``grounds``), the
-confidence published beside it is the one the model had earned when learning stopped.
+answer comes from exactly the saved model, blended by the gains it carries (``grounds``: the
+long memory's, what its ``predict`` applies too); the confidence published beside it is the one
+it had earned when learning stopped. A save asked for while learning stops waits for the stop
+(``wait_stopped``).
 Switching it on again resumes learning where it stopped: the same buffer, model and history;
 the refit clock starts again at the next sample.
 """
