@@ -42,9 +42,8 @@ from .hyper import learn_hyper, persistent as hyper_persistent, PINNED_LOG_LS
 from .kernels import Structure
 from .posterior import Hyper
 
-__all__ = ['select_elements', 'choice_summary', 'CHOICES', 'FOLDS', 'MARGINS', 'MIN_TRAIN',
-           'MIN_HOLDOUT',
-           'element_masks', 'row_choices']
+__all__ = ['select_elements', 'choice_summary', 'element_masks', 'row_choices', 'CHOICES',
+           'FOLDS', 'MARGINS', 'MIN_TRAIN', 'MIN_HOLDOUT']
 
 CHOICES = ('none', 'own', 'all')
 #: contiguous blocks of the rows (in time order), each held out in turn
