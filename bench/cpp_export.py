@@ -107,11 +107,13 @@ def learn(case: str, path: str, quick: bool) -> str:
 
 
 def rel(a, b) -> float:
+    """Return the largest error per answer relative to that answer's largest entry."""
     a, b = np.asarray(a).reshape(len(a), -1), np.asarray(b).reshape(len(b), -1)
     return float((np.abs(a - b).max(axis=1) / np.maximum(np.abs(b).max(axis=1), 1e-300)).max())
 
 
 def velocities(X, k, far, rng):
+    """Return k velocities uniform in the box of X (n, N), or (``far``) 10-30x beyond it."""
     c, r = 0.5 * (X.max(0) + X.min(0)), 0.5 * (X.max(0) - X.min(0))
     if not far:
         return rng.uniform(c - r, c + r, (k, X.shape[1]))
@@ -121,6 +123,7 @@ def velocities(X, k, far, rng):
 
 
 def node_answers(spec, path, Qd):
+    """Return the frozen node's published (tau_hat, D) at each velocity and its guarantee."""
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
     est = OnlineEstimator(EstimatorConfig(refit_mode='sync', learning=False, model_path=path,
                                           model=spec.kind, passivity=spec.passivity,

@@ -14,12 +14,17 @@ power. Refusals, the tool's exit status, the example program and the exp are tes
 """
 import os
 import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from dgp_ros.export import export_cpp, ExportError, header_spec, write_header
 from dgp_ros.export.toolchain import compile_program, driver, evaluate, find_compiler
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(
+    os.path.abspath(__file__)))), 'bench'))
+from cpp_export import node_answers, rel, velocities  # noqa: E402,I100
 
 pytestmark = pytest.mark.xdist_group('export_cpp')      # one worker builds the models
 
@@ -28,12 +33,6 @@ needs_cxx = pytest.mark.skipif(CXX is None, reason='no C++ compiler (g++, clang+
 EXAMPLE = os.path.join(os.path.dirname(__file__), '..', '..', 'examples', 'cpp',
                        'friction_along_log.cpp')
 TOL = 1e-9
-
-
-def rel(a, b) -> float:
-    """Largest error per answer relative to that answer's largest entry."""
-    a, b = np.asarray(a).reshape(len(a), -1), np.asarray(b).reshape(len(b), -1)
-    return float((np.abs(a - b).max(axis=1) / np.maximum(np.abs(b).max(axis=1), 1e-300)).max())
 
 
 def _arm_data(n=80, N=7, coupling=1.0, seed=0):
@@ -98,28 +97,14 @@ def built(models, tmp_path_factory):
 
 
 def _velocities(model, k, seed, far):
-    rng = np.random.default_rng(seed)
-    X = model.X_train_
-    c, r = 0.5 * (X.max(0) + X.min(0)), 0.5 * (X.max(0) - X.min(0))
-    if not far:
-        return rng.uniform(c - r, c + r, (k, X.shape[1]))
-    u = rng.normal(size=(k, X.shape[1]))
-    u /= np.abs(u).max(axis=1, keepdims=True)
-    return c + r * u * rng.uniform(10.0, 30.0, (k, 1))
+    return velocities(model.X_train_, k, far, np.random.default_rng(seed))
 
 
 def _node_answers(spec, path, Qd):
     """Return the frozen node's published (tau_hat, D) at each velocity (in line, no DDS)."""
-    from dgp_ros.online import EstimatorConfig, OnlineEstimator
-    est = OnlineEstimator(EstimatorConfig(refit_mode='sync', learning=False, model_path=path,
-                                          model=spec.kind, passivity=spec.passivity,
-                                          joints=spec.names))
-    try:
-        assert est.diagnostics().get('guarantee') == spec.guarantee
-        res = [est.process(float(i), spec.names, Qd[i], np.zeros(spec.N)) for i in range(len(Qd))]
-    finally:
-        est.close()
-    return np.array([e.tau_hat for e in res]), np.array([e.D for e in res])
+    tau, D, guarantee = node_answers(spec, path, Qd)
+    assert guarantee == spec.guarantee
+    return tau, D
 
 
 def test_guarantees_as_proven(built):
