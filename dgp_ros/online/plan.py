@@ -52,14 +52,18 @@ class AnswerPlan:
         self.key = (p, p.X, p.weights, hp)
         self.kind, self.N, self.E = s.kind, s.N, s.E
         self.has_damping = s.has_damping
-        self.rows = np.array([m for m, _ in s.elems], dtype=np.intp)
-        self.cols = np.array([0 if n is None else n for _, n in s.elems], dtype=np.intp)
-        ard = np.array([n is None for _, n in s.elems])
-        sf2 = np.exp(np.asarray(hp.log_sf2, float))
-        phi = np.where(ard[None, :], 1.0, p.X[:, self.cols])                  # (n, E)
-        V = (phi * p.weights[:, self.rows]).T * (sf2 > 0.0)[:, None]           # (E, n)
-        self.V = np.ascontiguousarray((V * sf2[:, None]).T)                  # (n, E)
-        self.W = np.ascontiguousarray(-0.5 * np.exp(-2.0 * np.asarray(hp.log_ls, float)).T)
+        # only the elements switched on (``gp.select`` leaves an arm's outputs one element or
+        # none of the 49): the others contribute nothing and cost an exponent each
+        on = np.flatnonzero(np.exp(np.asarray(hp.log_sf2, float)) > 0.0)
+        self.rows = np.array([s.elems[e][0] for e in on], dtype=np.intp)
+        self.cols = np.array([0 if s.elems[e][1] is None else s.elems[e][1] for e in on],
+                             dtype=np.intp)
+        ard = np.array([s.elems[e][1] is None for e in on], dtype=bool)
+        sf2 = np.exp(np.asarray(hp.log_sf2, float))[on]
+        phi = np.where(ard[None, :], 1.0, p.X[:, self.cols])                  # (n, E on)
+        V = (phi * p.weights[:, self.rows]).T                                 # (E on, n)
+        self.V = np.ascontiguousarray((V * sf2[:, None]).T)                  # (n, E on)
+        self.W = np.ascontiguousarray(-0.5 * np.exp(-2.0 * np.asarray(hp.log_ls, float)[on]).T)
         self.X = p.X
         self.sx, self.sy = np.asarray(hp.sx, float), np.asarray(hp.sy, float)
         self.dscale = self.sy[:, None] / self.sx[None, :]
@@ -68,7 +72,7 @@ class AnswerPlan:
         self.force_is_diag = type(self.mean).force is PriorMean.force
         # a full model's elements in row-major order: the element weights are G itself
         N = self.N
-        self.grid = self.E == N * N and np.array_equal(self.rows, np.repeat(np.arange(N), N)) \
+        self.grid = len(on) == N * N and np.array_equal(self.rows, np.repeat(np.arange(N), N)) \
             and np.array_equal(self.cols, np.tile(np.arange(N), N))
 
     def current(self, model) -> bool:
@@ -80,11 +84,14 @@ class AnswerPlan:
 
     def signature(self) -> tuple:
         """Return what decides the formulas (a plan with a new one is verified)."""
-        return (type(self.model), type(self.policy), type(self.mean), self.kind, self.E)
+        return (type(self.model), type(self.policy), type(self.mean), self.kind, self.E,
+                self.rows.size)
 
     def _weights(self, X: np.ndarray) -> np.ndarray:
         """Element weights G (k, N, N) at standardized queries X (k, N): ``_element_weights``."""
         k = X.shape[0]
+        if not self.rows.size:
+            return np.zeros((k, self.N, self.N))
         d = X[:, None, :] - self.X[None, :, :]                      # (k, n, N)
         d *= d
         A = d @ self.W                                              # (k, n, E) exponents

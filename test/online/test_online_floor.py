@@ -303,3 +303,26 @@ def test_reset_does_not_hold_the_message_path_while_the_learner_answers():
         assert not th.is_alive()
     finally:
         est.close()
+
+
+def test_the_plan_answers_a_model_with_elements_off_as_the_model():
+    # an arm's outputs keep one element or none of the N x N (gp.select): the lean pass
+    # computes only those, and answers (and damping matrices) as the model does
+    from dgp_ros.gp import FullDGP
+    from dgp_ros.gp.select import row_choices
+    from dgp_ros.online.plan import AnswerPlan
+    rng = np.random.default_rng(4)
+    Q = rng.normal(0.0, 0.6, (120, 4))
+    T = 0.4 * Q + 0.3 * np.tanh(Q / 0.05) + 0.2 * np.sin(3 * Q) * Q + \
+        0.01 * rng.normal(size=Q.shape)
+    T[:, 2] = 0.5 * Q[:, 2] + 0.05 * rng.normal(size=120)        # nothing for a GP to add
+    m = FullDGP(prior='friction', elements='auto', n_restarts=0).fit(Q, T)
+    choices = row_choices(m.posterior_.structure, m.posterior_.hyper)
+    assert 'all' not in choices and 0 < sum(c == 'own' for c in choices) < 4, choices
+    plan = AnswerPlan(m)
+    assert plan.rows.size == sum(c == 'own' for c in choices)
+    Qs = rng.uniform(-2, 2, (16, 4))
+    tau, D = plan.answers(Qs, True)
+    t_ref, _, D_ref = m.predict_with_damping(Qs, False, True)
+    assert np.allclose(tau, t_ref, rtol=1e-9, atol=1e-12)
+    assert np.allclose(D, D_ref, rtol=1e-9, atol=1e-12)
