@@ -15,8 +15,9 @@ the training box and ``K`` 10-30x outside it (random poses in [-pi, pi]):
 Models: the A320 (sim_bridge's approach, the ledger's flight, the whole of it), the real Panda
 (``../shared/data/panda_real``, t < 7.5 s, its identified model as ``python:panda_rb:tau_rb``:
 a Full-D model of the buffer's 200 samples with the URDF regressor correction of
-example-robot-data's panda) and the real UR10 (``../shared/data/ur10_real``, t < 10 s,
-``python:ur10_rb:tau_rb``); a real log that is absent is replaced by the simulated Panda of the
+example-robot-data's panda; the node's defaults keep none of its 49 elements of D, so it is
+also exported with ``elements=all``, the paper's Full-D, all 49) and the real UR10
+(``../shared/data/ur10_real``, t < 10 s, ``python:ur10_rb:tau_rb``); a real log that is absent is replaced by the simulated Panda of the
 robot demo (said in the table). Time per ``friction()`` call: the example program
 (``examples/cpp/friction_along_log.cpp``) on 2000 samples of the model's own velocities, at
 ``-O2`` and ``-O2 -march=native`` with g++ (and clang++ where installed), beside one Python
@@ -73,6 +74,8 @@ def learn(case: str, path: str, quick: bool) -> str:
         _stream(est, f['t'][:k], list(f['joint_names']), f['q'][:k], f['tau'][:k])
         label = f'A320, {f["t"][k - 1] - f["t"][0]:.0f} s of the approach'
     else:
+        extra = {'elements': 'all'} if case.endswith('_full') else {}
+        case = case.split('_')[0]
         d = _shared(f'{case}_real')
         if d is None or quick:
             from dgp_ros.dynamics import example_robot_urdf
@@ -96,11 +99,12 @@ def learn(case: str, path: str, quick: bool) -> str:
                 ['shoulder_pan_joint', 'shoulder_lift_joint', 'elbow_joint', 'wrist_1_joint',
                  'wrist_2_joint', 'wrist_3_joint']
             est = OnlineEstimator(EstimatorConfig(
-                refit_mode='sync', inverse_dynamics=f'python:{case}_rb:tau_rb'))
+                refit_mode='sync', inverse_dynamics=f'python:{case}_rb:tau_rb', **extra))
             est.set_source('bag')
             est.set_outputs(stddev=False, damping=False)
             _stream(est, z['t'][tr], names, z['qd'][tr], z['tau_meas'][tr], z['q'][tr], True)
-            label = f'real {case.upper() if case == "ur10" else "Panda"} log, t < {split} s'
+            label = f'real {case.upper() if case == "ur10" else "Panda"} log, t < {split} s' + \
+                (', elements=all (Full-D)' if extra else '')
     est.save(path)
     est.close()
     return label
@@ -250,7 +254,8 @@ def main(argv=None) -> int:
         return 0
     res = []
     with tempfile.TemporaryDirectory() as d:
-        for case in (('a320', 'panda') if a.quick else ('a320', 'panda', 'ur10')):
+        for case in (('a320', 'panda') if a.quick else ('a320', 'panda', 'panda_full',
+                                                         'ur10')):
             res.append(run_case(case, a.quick, d))
     C.write_section(a.out, NAME, report(a, res, time.perf_counter() - t0))
     return 0
