@@ -238,6 +238,8 @@ def _row(label: str, r: dict) -> list:
     f = C.fmt
     if r is None:
         return [label, 'log not found: skipped'] + ['-'] * 7
+    if not r['trained']:
+        return [label, f'never trained: {r["status"][1]}'] + ['-'] * 7
     zero = ' / '.join(f'{a:.2g}<{b:.2g}' for a, b in zip(r['live'], r['zero']))
     return [label, f(r['mean']), f(np.mean(r['parametric'])), f(np.mean(r['cv'])),
             f(np.mean(r['sigmoid'])), f'{r["mean"] / np.mean(r["cv"]):.3f} / '
@@ -264,7 +266,7 @@ def report(a, results: list, wall: float) -> str:
                          'live one step < zero, per joint', 'learning / stream'],
                         [_row(label, r) for label, r in results]), '']
     for label, r in results:
-        if r is None:
+        if r is None or not r['trained']:
             continue
         lines += [f'**{label}**: structure `{r["structure"]}`, elements `{r["elements"]}`, '
                   f'refits ok / failed {r["refits"][0]} / {r["refits"][1]}, status '
@@ -286,7 +288,7 @@ def main(argv=None) -> int:
         log = family_log(label)
         r = None if log is None else arm_case(log)
         C.log(f'{NAME}: {label} ' + ('skipped (no log)' if r is None else
-                                     f'{r["wall_s"]:.1f} s, held out {r["mean"]:.4g}'))
+                                     f'{r["wall_s"]:.1f} s, held out {r.get("mean", "-")}'))
         results.append((label, r))
     C.write_section(a.out, NAME, report(a, results, time.perf_counter() - t0))
     return 0
