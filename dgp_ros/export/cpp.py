@@ -16,7 +16,8 @@ from typing import Iterable
 
 import numpy as np
 
-from .cpp_runtime import CHAIN, EXP, GATE, KERNEL, PROJECT, PSD_FLOOR, TANH_OVER
+from .cpp_runtime import (CHAIN, EXP, GATE, KERNEL, KERNEL_NONE, KERNEL_SCALAR, PROJECT,
+                          PSD_FLOOR, TANH_OVER)
 from .errors import ExportError
 from .spec import Spec
 
@@ -209,7 +210,8 @@ def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
     if not namespace.replace('_', 'a').isalnum() or namespace[0].isdigit():
         raise ExportError(f'namespace {namespace!r} is not a C++ identifier')
     N, E = spec.N, len(spec.elements)
-    NE = max(PAD, -(-E // PAD) * PAD)
+    vector = E >= PAD              # fewer elements than a vector's lanes: one at a time
+    NE = -(-E // PAD) * PAD if vector else max(E, 1)
     IL2 = np.zeros((N, NE))
     V = np.zeros((spec.n, NE))
     for e, el in enumerate(spec.elements):
@@ -232,7 +234,7 @@ def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
     if spec.clip_delta is not None:
         d.append(f'constexpr double PSD_DELTA = {_lit(spec.clip_delta)};\n')
     d.append(EXP.substitute())
-    d.append(KERNEL.substitute())
+    d.append((KERNEL if vector else KERNEL_SCALAR if E else KERNEL_NONE).substitute())
     d += [_prior_code(spec), _weight_code(spec)]
     if spec.clip_delta is not None:
         d.append(PSD_FLOOR.substitute())

@@ -9,7 +9,7 @@ where a kernel exponent does not need the fast one.
 """
 from string import Template
 
-__all__ = ['EXP', 'KERNEL', 'PSD_FLOOR', 'PROJECT', 'GATE', 'CHAIN', 'TANH_OVER']
+__all__ = ['EXP', 'KERNEL', 'KERNEL_SCALAR', 'KERNEL_NONE', 'PSD_FLOOR', 'PROJECT', 'GATE', 'CHAIN', 'TANH_OVER']
 
 #: exp(x) in plain arithmetic, on one number or a vector of them (GCC/clang vector extensions,
 #: so the element loop runs as SIMD where the target has it: SSE2, AVX, AVX-512, NEON):
@@ -98,6 +98,35 @@ inline void element_sums(const double* x, double* acc) noexcept {
   }
 }
 #endif
+""")
+
+#: the same, one element at a time: fewer elements than a vector holds (an arm whose joints keep
+#: their own friction curve: up to N of the N x N), where eight padded lanes cost 8x the exps
+KERNEL_SCALAR = Template(r"""
+inline void element_sums(const double* x, double* acc) noexcept {
+  for (std::size_t e = 0; e < NE; ++e) acc[e] = 0.0;
+  for (std::size_t j = 0; j < n_train; ++j) {
+    double d2[N];
+    for (std::size_t d = 0; d < N; ++d) {
+      const double t = x[d] - X[j][d];
+      d2[d] = t * t;
+    }
+    for (std::size_t e = 0; e < NE; ++e) {
+      double s = d2[0] * IL2[0][e];
+      for (std::size_t d = 1; d < N; ++d) s += d2[d] * IL2[d][e];
+      s *= -0.5;
+      exp_floor<double, std::uint64_t>(s, 0.0);
+      acc[e] += s * V[j][e];
+    }
+  }
+}
+""")
+
+#: no element switched on (every output its prior alone): nothing to sum
+KERNEL_NONE = Template(r"""
+inline void element_sums(const double*, double* acc) noexcept {
+  for (std::size_t e = 0; e < NE; ++e) acc[e] = 0.0;
+}
 """)
 
 #: the eigenvalue floor of the symmetric part (gp/psd.py ``psd_clip``, ``smooth_floor``):

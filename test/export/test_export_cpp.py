@@ -160,6 +160,32 @@ def test_a_changed_constant_is_seen(built, tmp_path):
     assert rel(out['model_damping'], model.predict(Qd)) > 1e-8
 
 
+@needs_cxx
+@pytest.mark.parametrize('elements', [0, 3])
+def test_fewer_elements_than_a_vector_holds(tmp_path, elements):
+    # an arm whose joints keep their own friction curve or none (gp.select): the kernel sums
+    # one element at a time, or nothing at all, and answers as Python does
+    from dgp_ros.gp import FullDGP
+    from dgp_ros.gp.select import row_choices
+    Qd, Tau = _arm_data(n=120, coupling=0.0, seed=4)
+    if elements == 0:
+        Tau = 0.3 * Qd + 0.3 * np.tanh(Qd / 0.05)              # the prior is the whole law
+    else:
+        Tau[:, :3] += 0.5 * np.sin(4.0 * Qd[:, :3]) * Qd[:, :3]
+    m = FullDGP(prior='friction', elements='auto', n_restarts=0).fit(Qd, Tau)
+    own = sum(c == 'own' for c in row_choices(m.posterior_.structure, m.posterior_.hyper))
+    assert own == elements
+    spec, model = header_spec(m)
+    assert len(spec.elements) == elements
+    hdr = str(tmp_path / 'few.hpp')
+    write_header(spec, hdr)
+    exe = driver(hdr, str(tmp_path), CXX)
+    Qs = _velocities(model, 300, 17, False)
+    out = evaluate(exe, Qs, Qs, str(tmp_path))
+    assert rel(out['model_damping'], model.predict(Qs)) < TOL
+    assert rel(out['model_damping_matrix'], model.damping_matrix(Qs)) < TOL
+
+
 @pytest.mark.parametrize('variant', ['scalar', 'clang++'])
 def test_other_builds(built, tmp_path, variant):
     """The scalar fallback (no vector extensions) and clang++ give the same answers."""
