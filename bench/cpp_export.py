@@ -14,11 +14,11 @@ the training box and ``K`` 10-30x outside it (random poses in [-pi, pi]):
 
 Models: the A320 (sim_bridge's approach, the ledger's flight, the whole of it), the real Panda
 (``../shared/data/panda_real``, t < 7.5 s, its identified model as ``python:panda_rb:tau_rb``:
-a Full-D model of the buffer's 200 samples with the URDF regressor correction of
+a model of the buffer's 200 samples with the URDF regressor correction of
 example-robot-data's panda; the node's defaults keep none of its 49 elements of D, so it is
 also exported with ``elements=all``, the paper's Full-D, all 49) and the real UR10
-(``../shared/data/ur10_real``, t < 10 s, ``python:ur10_rb:tau_rb``); a real log that is absent is replaced by the simulated Panda of the
-robot demo (said in the table). Time per ``friction()`` call: the example program
+(``../shared/data/ur10_real``, t < 10 s, ``python:ur10_rb:tau_rb``); a real log that is absent
+is replaced by the simulated Panda of the robot demo (said in the table). Time per ``friction()`` call: the example program
 (``examples/cpp/friction_along_log.cpp``) on 2000 samples of the model's own velocities, at
 ``-O2`` and ``-O2 -march=native`` with g++ (and clang++ where installed), beside one Python
 ``predict_residual`` call on one sample (median of 300) in the same run.
@@ -254,8 +254,8 @@ def main(argv=None) -> int:
         return 0
     res = []
     with tempfile.TemporaryDirectory() as d:
-        for case in (('a320', 'panda') if a.quick else ('a320', 'panda', 'panda_full',
-                                                         'ur10')):
+        cases = ('a320', 'panda') if a.quick else ('a320', 'panda', 'panda_full', 'ur10')
+        for case in cases:
             res.append(run_case(case, a.quick, d))
     C.write_section(a.out, NAME, report(a, res, time.perf_counter() - t0))
     return 0
