@@ -18,9 +18,9 @@ a model of the buffer's 200 samples with the URDF regressor correction of
 example-robot-data's panda; the node's defaults keep none of its 49 elements of D, so it is
 also exported with ``elements=all``, the paper's Full-D, all 49) and the real UR10
 (``../shared/data/ur10_real``, t < 10 s, ``python:ur10_rb:tau_rb``); a real log that is absent
-is replaced by the simulated Panda of the robot demo (said in the table). Time per ``friction()`` call: the example program
-(``examples/cpp/friction_along_log.cpp``) on 2000 samples of the model's own velocities, at
-``-O2`` and ``-O2 -march=native`` with g++ (and clang++ where installed), beside one Python
+is replaced by the simulated Panda of the robot demo (said in the table). Time per
+``friction()`` call: the example program (``examples/cpp/friction_along_log.cpp``) on 2000
+samples of the model's own velocities, at ``-O2`` and ``-O2 -march=native`` with g++ (and clang++ where installed), beside one Python
 ``predict_residual`` call on one sample (median of 300) in the same run.
 
 Usage: bench/cpp_export.py [--quick] [--out DIR]

@@ -9,7 +9,8 @@ where a kernel exponent does not need the fast one.
 """
 from string import Template
 
-__all__ = ['EXP', 'KERNEL', 'KERNEL_SCALAR', 'KERNEL_NONE', 'PSD_FLOOR', 'PROJECT', 'GATE', 'CHAIN', 'TANH_OVER']
+__all__ = ['EXP', 'KERNEL', 'KERNEL_SCALAR', 'KERNEL_NONE', 'PSD_FLOOR', 'PROJECT', 'GATE',
+           'CHAIN', 'TANH_OVER']
 
 #: exp(x) in plain arithmetic, on one number or a vector of them (GCC/clang vector extensions,
 #: so the element loop runs as SIMD where the target has it: SSE2, AVX, AVX-512, NEON):
