@@ -20,8 +20,9 @@ also exported with ``elements=all``, the paper's Full-D, all 49) and the real UR
 (``../shared/data/ur10_real``, t < 10 s, ``python:ur10_rb:tau_rb``); a real log that is absent
 is replaced by the simulated Panda of the robot demo (said in the table). Time per
 ``friction()`` call: the example program (``examples/cpp/friction_along_log.cpp``) on 2000
-samples of the model's own velocities, at ``-O2`` and ``-O2 -march=native`` with g++ (and clang++ where installed), beside one Python
-``predict_residual`` call on one sample (median of 300) in the same run.
+samples of the model's own velocities, at ``-O2`` and ``-O2 -march=native`` with g++ (and
+clang++ where installed), beside one Python ``predict_residual`` call on one sample (median of
+300) in the same run.
 
 Usage: bench/cpp_export.py [--quick] [--out DIR]
 """
