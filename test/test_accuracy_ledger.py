@@ -7,7 +7,6 @@ held out (skipped with the reason where the shared data are absent, as in a user
 simulated Panda with friction outside the prior's family held out. The thresholds are
 ``ledger.LIMITS``: about 1.4x the best value reached, so a 1.5x loss of any figure fails here.
 """
-import functools
 import os
 import sys
 
@@ -20,26 +19,17 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
 import ledger  # noqa: E402
 
 
-@functools.lru_cache(maxsize=1)
-def _a320():
-    return ledger.a320_case(ledger.a320_flight())
-
-
 @pytest.fixture
-def a320():
-    # computed once per process: pytest-xdist may run another module's test between the two
-    # that use it (a module fixture would then be built twice); xdist_group keeps them on one
-    # worker
-    return _a320()
+def a320(session_once):
+    # the flight and its answers once per session, whichever worker asks first (conftest)
+    return session_once('ledger_a320', lambda _: ledger.a320_case(ledger.a320_flight()))
 
 
-@pytest.mark.xdist_group('ledger_a320')      # one worker computes the flight's fixture
 def test_a320_first_20_s_one_step_ahead(a320):
     assert ledger.check('a320_early', a320['early']) == [], a320
     assert a320['early'].max() <= 0.02                      # the issue's bar
 
 
-@pytest.mark.xdist_group('ledger_a320')
 def test_a320_whole_flight_one_step_ahead(a320):
     assert a320['flight_s'] > 55.0                          # the whole approach, to touch-down
     assert ledger.check('a320_whole', a320['whole']) == [], a320

@@ -1,7 +1,7 @@
 """
 Generated C++ of frozen models against Python and the frozen node (issue 43).
 
-Three models, each trained once per module on short data: a Full-D arm model (7 joints, the
+Three models, each trained once per session on short data: a Full-D arm model (7 joints, the
 eigenvalue floor ``psd-clip``, earned gains below 1: the per-joint blend), a Diag arm model with
 a URDF regressor correction and offsets (the Panda's kinematics) and an A320 model (3 velocities,
 a domain proof: the C2 blend). Each header is compiled with the system compiler
@@ -13,6 +13,7 @@ evaluated on random velocities inside the data and 10-30x outside, against
 power. Refusals, the tool's exit status, the example program and the exp are tested too.
 """
 import os
+import pathlib
 import subprocess
 import sys
 
@@ -25,8 +26,6 @@ from dgp_ros.export.toolchain import compile_program, driver, evaluate, find_com
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__)))), 'bench'))
 from cpp_export import node_answers, rel, velocities  # noqa: E402,I100
-
-pytestmark = pytest.mark.xdist_group('export_cpp')      # one worker builds the models
 
 CXX = find_compiler()
 needs_cxx = pytest.mark.skipif(CXX is None, reason='no C++ compiler (g++, clang++, c++ or CXX)')
@@ -49,14 +48,13 @@ def _grounds(N, seed):
             'prior_gain': rng.uniform(0.5, 1.0, N).tolist(), 'confidence': [1.0] * N}
 
 
-@pytest.fixture(scope='module')
-def models(tmp_path_factory):
-    """Train the three models once (module docstring); their files by name."""
+def _train(directory):
+    """Train the three models (module docstring) into ``directory``; their files by name."""
     from dgp_ros.dynamics import example_robot_urdf, UrdfInverseDynamics
     from dgp_ros.dynamics.conservative import Correction, RegressorBasis
     from dgp_ros.gp import DiagDGP, FullDGP
     from sim_bridge import SimConfig, simulate_approach
-    d = tmp_path_factory.mktemp('export_models')
+    d = pathlib.Path(directory)
     out = {}
     m = FullDGP(prior='friction', n_restarts=0, max_opt_samples=80).fit(*_arm_data())
     assert m.certificate().method == 'psd-clip'
@@ -82,18 +80,37 @@ def models(tmp_path_factory):
 
 
 @pytest.fixture(scope='module')
-def built(models, tmp_path_factory):
-    """Return {name: (spec, proven model, driver executable, workdir)}, compiled once."""
-    if CXX is None:
-        pytest.skip('no C++ compiler (g++, clang++, c++ or CXX)')
+def models(session_once):
+    """The three models' files by name, trained once per session (conftest)."""
+    return session_once('export_models', _train)
+
+
+def _compile(models, directory):
+    """Write each model's header into ``directory`` and compile its driver; {name: exe}."""
     out = {}
     for name, path in models.items():
-        d = str(tmp_path_factory.mktemp(f'cpp_{name}'))
-        spec, model = header_spec(path)
+        d = os.path.join(directory, name)
+        os.makedirs(d, exist_ok=True)
+        spec, _ = header_spec(path)
         hdr = os.path.join(d, 'model.hpp')
         write_header(spec, hdr)
-        out[name] = (spec, model, driver(hdr, d, CXX), d, path)
+        out[name] = driver(hdr, d, CXX)
     return out
+
+
+@pytest.fixture(scope='module')
+def built(models, session_once, tmp_path_factory):
+    """
+    Return {name: (spec, proven model, driver executable, workdir, file)}.
+
+    The drivers are compiled once per session; the workdir (the driver's input and output
+    files) is this worker's own.
+    """
+    if CXX is None:
+        pytest.skip('no C++ compiler (g++, clang++, c++ or CXX)')
+    exes = session_once('export_drivers', lambda d: _compile(models, d))
+    return {name: header_spec(path) + (exes[name], str(tmp_path_factory.mktemp(f'cpp_{name}')),
+                                       path) for name, path in models.items()}
 
 
 def _velocities(model, k, seed, far):
