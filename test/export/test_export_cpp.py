@@ -81,7 +81,7 @@ def _train(directory):
 
 @pytest.fixture(scope='module')
 def models(session_once):
-    """The three models' files by name, trained once per session (conftest)."""
+    """Return the three models' files by name, trained once per session (conftest)."""
     return session_once('export_models', _train)
 
 

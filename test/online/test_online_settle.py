@@ -79,7 +79,13 @@ def test_a_loop_that_fell_behind_brings_the_last_samples_to_the_model_when_they_
         def holds_last():
             X = L.snapshot(variance=False, frozen=True).model.X_train_
             return np.any(np.all(np.abs(X - last) <= 1e-12, axis=1))
-        assert _until(lambda: L.unheld == 0 and holds_last(), 30), (L.unheld, L.status())
+        if not _until(lambda: L.unheld == 0 and holds_last(), 30):
+            X = L.snapshot(variance=False, frozen=True).model.X_train_
+            raise AssertionError(                # all a failure under load needs to be read
+                f'unheld {L.unheld}, learned {L.health.samples_added} (seq {L._seq}, model '
+                f'{L._model_seq}), outliers {L.health.samples_outliers}, skipped '
+                f'{L.health.samples_skipped}, {len(X)} rows, closest to the last sample '
+                f'{np.abs(X - last).max(axis=1).min():.3g}, counters {L.health.counters()}')
         assert L.health.samples_added == 370
     finally:
         cmd_node.send(('stop', 5.0))

@@ -84,7 +84,8 @@ def test_estimator_sigkilled_mid_run_controller_drops_compensation(tmp_path):
     assert r['exit']['controller'] == 0 and r['exit']['arm_loop'] == 0
     assert r['killed_at_s'] is not None and 0.75 <= r['killed_at_s'] < 0.9
     assert c['commands'] == 1500 and len(r['t']) == 1500       # every step commanded
-    assert c['answers'] > 500 and c['nonpassive_answers'] == 0
+    # it answered before the kill (750 steps): a suite under load saw 466, a quiet run > 600
+    assert c['answers'] > 300 and c['nonpassive_answers'] == 0
     assert c['stale'] > 0 and c['waited_out'] >= 1              # dropped the dead estimator
     log = (tmp_path / 'controller.log').read_text()
     assert 'Traceback' not in log and 'Error' not in log
