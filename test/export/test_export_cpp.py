@@ -203,11 +203,28 @@ def test_fewer_elements_than_a_vector_holds(tmp_path, elements):
     assert rel(out['model_damping_matrix'], model.damping_matrix(Qs)) < TOL
 
 
-@pytest.mark.parametrize('variant', ['scalar', 'clang++'])
+def _cpu_has(flag):
+    try:
+        with open('/proc/cpuinfo', encoding='utf-8') as f:
+            return any(line.startswith('flags') and flag in line.split() for line in f)
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize('variant', ['scalar', 'avx', 'avx512', 'clang++'])
 def test_other_builds(built, tmp_path, variant):
-    """The scalar fallback (no vector extensions) and clang++ give the same answers."""
+    """
+    Every build gives the same answers.
+
+    The scalar fallback (no vector extensions), the vector widths of AVX (4 lanes) and AVX-512
+    (8; the default -O2 build has 2), and clang++.
+    """
     spec, model, _, _, path = built['full_arm']
     cxx, flags = CXX, ('-O2', '-DDGP_EXPORT_SCALAR')
+    if variant.startswith('avx'):
+        if not _cpu_has('avx512f' if variant == 'avx512' else 'avx'):
+            pytest.skip(f'this CPU has no {variant.upper()}')
+        flags = ('-O2', '-mavx512f' if variant == 'avx512' else '-mavx')
     if variant == 'clang++':
         cxx, flags = find_compiler(('clang++',)) if 'clang' not in CXX else CXX, ('-O2',)
         if cxx is None or 'clang' not in os.path.basename(cxx):
