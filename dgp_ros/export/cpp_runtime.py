@@ -307,8 +307,11 @@ inline void gate(const double* q, double* tau, double* D, bool check_d) noexcept
     s[i] = r < 1.0 ? r : 1.0;
     tb[i] = tau[i] * s[i];
   }
-  if (GATE_PASSIVE && power(q, tb) < -tolerance(q, tb))
-    for (std::size_t i = 0; i < N; ++i) s[i] = 1.0 / worst;
+  if (GATE_PASSIVE && power(q, tb) < tolerance(q, tb)) {  // uniformly, 2^-e <= 1 / worst: exact
+    int e = 0;
+    std::frexp(worst, &e);
+    for (std::size_t i = 0; i < N; ++i) s[i] = std::ldexp(1.0, -e);
+  }
   for (std::size_t i = 0; i < N; ++i) {
     tau[i] = tau[i] * s[i];
     for (std::size_t j = 0; j < N; ++j) D[i * N + j] *= s[i];

@@ -5,8 +5,9 @@ The output gate: every answer of the message path is computed and checked here (
 each answer: non-finite or non-passive estimates (beyond rounding) are replaced by the passive
 prior, and an estimate larger than what was learned is clipped to it joint by joint
 (``BOUND_FACTOR`` x the largest learned force per joint, or the prior's own force where that is
-larger), or scaled down as a whole where clipping would make ``qd . tau_hat`` negative (a uniform
-scaling keeps it >= 0); each case is counted in the message path's ``Health``.
+larger), or scaled down as a whole where clipping would make the computed ``qd . tau_hat``
+negative or leave it within rounding of 0 (a scaling by a power of two is exact: the power keeps
+its sign however it is summed); each case is counted in the message path's ``Health``.
 """
 from __future__ import annotations
 
@@ -191,6 +192,14 @@ def _gate(snap, Q, tau, std, D, source, want_stddev, want_damping, passivity, he
     return tau, std, D, source
 
 
+def _power_in_order(Q: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Return ``q . tau`` per row (k,), summed joint after joint (as the C++ export does)."""
+    p = Q[:, 0] * T[:, 0]
+    for i in range(1, Q.shape[1]):
+        p = p + Q[:, i] * T[:, i]
+    return p
+
+
 _LIMIT = (None, None)       # (the last snapshot, its learned limit): read and set as one
 
 
@@ -244,15 +253,17 @@ def _bound(snap: Snapshot, Q, tau, D, health, passivity: str):
         health.answers_bounded += int(big.sum())
         # each joint beyond its limit is clipped to it: one joint whose learned force is still
         # tiny (the A320's side force before the cross-wind builds up) must not scale down the
-        # others; where that would make the power negative, the whole answer is scaled instead
-        # (a uniform scaling keeps qd . tau_hat >= 0)
+        # others; where that would leave the power below its rounding tolerance (a projected
+        # answer lies on qd . tau = 0: clipped, it came out at -1e-16 relative), the whole
+        # answer is scaled instead, by the power of two 2^-e at or below 1 / worst: exact, so
+        # its power keeps its sign however it is summed
         tb = tau[big]
         s = np.minimum(1.0, np.broadcast_to(limit, tau.shape)[big] /
                        np.maximum(np.abs(tb), 1e-300))
         if passivity != 'none':
             Qb = Q[big]
-            neg = np.einsum('ij,ij->i', Qb, tb * s) < -passive_tolerance(Qb, tb * s)
-            s[neg] = (1.0 / worst[big][neg])[:, None]
+            neg = _power_in_order(Qb, tb * s) < passive_tolerance(Qb, tb * s)
+            s[neg] = np.ldexp(1.0, -np.frexp(worst[big][neg])[1])[:, None]
         tau = tau.copy()
         tau[big] = tb * s
         if D is not None:

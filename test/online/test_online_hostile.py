@@ -250,3 +250,40 @@ def test_answers_stay_within_a_factor_of_the_largest_residual_learned():
     assert outs[1][0, 0] == pytest.approx(RESIDUAL_FACTOR * 1.0)   # 1.8 x the residual's 1.0
     np.testing.assert_allclose(outs[1][1], tau_wild[1])             # small ones untouched
     assert np.all(np.abs(outs[1]) <= RESIDUAL_FACTOR * 1.0 + 1e-12)
+
+
+@pytest.mark.parametrize('N', [3, 7])
+def test_a_bounded_answer_on_the_passivity_boundary_stays_passive(N):
+    """
+    Clipping an answer that lies on ``qd . tau = 0`` never makes its computed power negative.
+
+    A model without a proof projects every answer (``pointwise``), so many lie on the boundary;
+    clipped joint by joint beyond the learned force, such an answer came out at -1e-10 on a
+    scale of 1e6 (the A320 exported far outside its data: 7 of 10,000 published answers): the
+    rounding check accepted it. Many random boundary answers, in 3 and 7 joints, summed in
+    order (as the C++ export does) and by einsum: every answer whose power was >= 0 stays so.
+    """
+    from types import SimpleNamespace
+    from dgp_ros.gp.policy import project_passive
+    from dgp_ros.online.answer import _bound
+    from dgp_ros.online.snapshot import Snapshot
+
+    def in_order(Q, T):
+        p = Q[:, 0] * T[:, 0]
+        for i in range(1, N):
+            p = p + Q[:, i] * T[:, i]
+        return p
+    rng = np.random.default_rng(N)
+    Q = rng.normal(size=(20000, N)) * rng.uniform(1.0, 300.0, (20000, 1))
+    tau = project_passive(Q, rng.normal(size=(20000, N)) * 1e5 - 3e5 * Q)
+    snap = Snapshot(version=1, model=None, prior=None, prior_std=np.zeros(N),
+                    force_bound=rng.uniform(1e3, 1e4, N), learned_through=1.0, frozen=True,
+                    velocity_box=(-np.ones(N), np.ones(N)))
+    health = SimpleNamespace(answers_bounded=0)
+    out, _ = _bound(snap, Q, tau, None, health, 'projected')
+    assert health.answers_bounded > 19000                       # the case at hand
+    assert np.all(np.abs(out) <= 1.5 * snap.force_bound * (1 + 1e-12))
+    for power in (in_order, lambda A, B: np.einsum('ij,ij->i', A, B)):
+        was = power(Q, tau) >= 0.0
+        assert was.sum() > 15000
+        assert power(Q, out)[was].min() >= 0.0
