@@ -157,8 +157,10 @@ def test_switch_in_a_learner_thread_or_process(tmp_path, mode):
         assert np.array_equal(saved.posterior_.weights, est.model.posterior_.weights)
         got = np.array([a.tau_hat for a in out])
         ref = saved.predict(Q[300:500])
+        # the node's lean answer plan sums in another order than predict: equal to rounding
+        # (2.4e-13 of the largest answer seen with two suites at once)
         assert e['answers_bounded'] > d['answers_bounded'] or \
-            np.abs(got - ref).max() <= 1e-13 * np.abs(ref).max()
+            np.abs(got - ref).max() <= 1e-11 * np.abs(ref).max()
         est.set_learning(True)
         _feed(est, t[500:], Q[500:], T[500:], sleep=0.002)
         end = time.monotonic() + 60
