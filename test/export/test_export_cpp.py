@@ -85,13 +85,12 @@ def models(session_once):
     return session_once('export_models', _train)
 
 
-def _compile(models, directory):
-    """Write each model's header into ``directory`` and compile its driver; {name: exe}."""
+def _compile(specs, directory):
+    """Write each spec's header into ``directory`` and compile its driver; {name: exe}."""
     out = {}
-    for name, path in models.items():
+    for name, spec in specs.items():
         d = os.path.join(directory, name)
         os.makedirs(d, exist_ok=True)
-        spec, _ = header_spec(path)
         hdr = os.path.join(d, 'model.hpp')
         write_header(spec, hdr)
         out[name] = driver(hdr, d, CXX)
@@ -108,9 +107,11 @@ def built(models, session_once, tmp_path_factory):
     """
     if CXX is None:
         pytest.skip('no C++ compiler (g++, clang++, c++ or CXX)')
-    exes = session_once('export_drivers', lambda d: _compile(models, d))
-    return {name: header_spec(path) + (exes[name], str(tmp_path_factory.mktemp(f'cpp_{name}')),
-                                       path) for name, path in models.items()}
+    proven = {name: header_spec(path) for name, path in models.items()}
+    exes = session_once('export_drivers',
+                        lambda d: _compile({k: v[0] for k, v in proven.items()}, d))
+    return {name: proven[name] + (exes[name], str(tmp_path_factory.mktemp(f'cpp_{name}')),
+                                  path) for name, path in models.items()}
 
 
 def _velocities(model, k, seed, far):
