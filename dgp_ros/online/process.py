@@ -445,10 +445,11 @@ class LearnerProcess:
         ring = self._ring
         if ring is not None:
             try:
-                # sent, not yet taken by the learner; never waits on a learner holding the lock
+                # sent, not yet taken by the learner (the backlog written first, or counted);
+                # never waits on a learner holding the lock
                 pending = ring.pending(timeout=0)
                 if pending is not None:
-                    d['samples_pending'] = pending + ring.backlog
+                    d['samples_pending'] = pending
             except Exception:       # noqa: BLE001 - a ring being replaced: next time
                 pass
         warnings = list(d.get('warnings', []))

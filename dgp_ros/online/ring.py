@@ -146,11 +146,19 @@ class SampleRing:
         return len(self._backlog)
 
     def pending(self, timeout: float = -1) -> Optional[int]:
-        """Rows written and not yet taken; None if the lock is not free within ``timeout`` s."""
+        """
+        Return the rows pushed and not yet taken; None if the lock is not free within ``timeout``.
+
+        The producer's backlog is written first (the lock is held anyway), so that 0 means
+        every row pushed reached the consumer: rows kept while it held the lock would otherwise
+        wait for the next push, which does not come when the stream stops. What a full ring
+        keeps back is counted too.
+        """
         if not self._lock.acquire(timeout=None if timeout < 0 else timeout):
             return None
         try:
-            return int(self._hdr[0] - self._hdr[1])
+            w = self._write_backlog() if self._backlog else int(self._hdr[0])
+            return int(w - self._hdr[1]) + len(self._backlog)
         finally:
             self._lock.release()
 

@@ -223,6 +223,27 @@ def test_ring_push_never_waits_for_a_held_lock():
         ring.close()
 
 
+def test_ring_pending_counts_and_hands_over_the_backlog():
+    """0 pending means every row pushed reached the consumer (the settle test's flake)."""
+    import multiprocessing
+    lock = multiprocessing.get_context('fork').Lock()
+    ring = SampleRing(2, 4, lock)
+    try:
+        lock.acquire()                  # the consumer holds it at the last pushes
+        for i in range(6):
+            assert ring.push(np.array([i, i]))
+        assert ring.pending(timeout=0) is None          # it never waits for the consumer
+        lock.release()
+        assert ring.pending() == 6                      # 4 in the ring, 2 kept back (full)
+        assert ring.backlog == 2
+        assert ring.take()[:, 0].tolist() == [0, 1, 2, 3]
+        assert ring.pending() == 2 and ring.backlog == 0
+        assert ring.take()[:, 0].tolist() == [4, 5]
+        assert ring.pending() == 0
+    finally:
+        ring.close()
+
+
 def test_ring_backlog_reaches_the_ring_when_the_stream_pauses():
     """The rows kept while the lock was held are written by ``flush`` with no further push."""
     import multiprocessing
