@@ -9,8 +9,11 @@ No rclpy here (everything a node does can be done offline)::
     e = est.process(stamp_s, names, velocity, effort)          # -> Estimate, or None if rejected
     est.diagnostics()                                          # dict: level, message, counters
 
-Modules: ``config`` (parameters and their specs), ``estimator`` (the message path),
-``selection`` (what is learned), ``worker`` (refit jobs), ``health`` (counters and status).
+Modules: ``config`` (parameters and their specs), ``estimator`` (the message path, with its
+parts ``intake`` and ``clock``), ``learner`` (what is learned, composed of parts that own their
+state: ``front``, ``window``, ``structure``, ``grounds``, ``served``, ``jobs``, ``absorb``,
+``switch``, ``snapshot``, ``files``), ``process``/``child`` (the learner in a child process),
+``health`` and ``report`` (counters and status); docs/ARCHITECTURE.md has the map.
 """
 from dgp_ros.gp import KINDS as MODELS
 from dgp_ros.gp import PASSIVITY_MODES

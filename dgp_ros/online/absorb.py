@@ -1,42 +1,41 @@
 """
-How new samples reach the model: appended at once, rebased on the buffer now and then (no rclpy).
+Rebases: the served model brought back to the window now and then (no rclpy).
 
-* **Appends.** A learned sample is appended to the live model as soon as it is buffered (in
-  line: in ``learn``; the learner process: once per round of samples, as one block): an exact
-  rank-k update of each output's Cholesky factor at the model's hyper-parameters, O(N n^2 k).
-  The next answer already knows it: on a trajectory that keeps reaching new velocities (the A320
-  entering angles of attack it has not flown yet) the answer one step ahead comes from its
-  neighbour of 1/60 s ago, not from ten samples ago.
-* **Rebases** (``absorb``). An exact refit on the buffer at the same hyper-parameters, once
-  ``buffer_size // REBASE_FRACTION`` samples were appended: the buffer replaces samples anywhere
-  (coverage), appends only add, so a rebase brings the model back to the buffer (and its size
-  back to ``buffer_size``), and takes a re-selected prior (``prior='auto'``). A learner process
-  that falls behind (samples queue up for it) stops appending and takes them in by rebases only:
-  one refit per batch is cheaper than a long block of appends.
+A part of :class:`~dgp_ros.online.learner.Learner`. A rebase is an exact refit on the window at
+the served model's hyper-parameters, once ``buffer_size // REBASE_FRACTION`` samples were
+appended: the buffer replaces samples anywhere (coverage), appends only add, so a rebase brings
+the model back to the buffer (and its size back to ``buffer_size``), and takes a re-selected
+prior (``prior='auto'``). A learner process that falls behind (samples queue up for it) stops
+appending (``Served.catch_up``) and takes them in by rebases only: one refit per batch is cheaper
+than a long block of appends.
 
-Neither waits for a proof: a certifying mode's model serves with what its cheap certificates
-give (the global bound, the eigenvalue floor) or, while a domain proof is pending, with every
-answer projected; the proof runs in a re-proof job (``jobs``). Only a non-finite model is refused
-(the samples then wait for the next refit, and the learner's health says why).
+A rebase does not wait for a proof: a certifying mode's model serves with what its cheap
+certificates give (the global bound, the eigenvalue floor) or, while a domain proof is pending,
+with every answer projected; the proof runs in a re-proof job (``jobs``). Only a non-finite
+model is refused (the samples then wait for the next refit, and the learner's health says why).
+
+In line (``refit_mode='sync'``) a rebase runs at once, in learning order; otherwise in a thread
+of its own (``dgp_absorb``), as soon as the last rebase's cost allows it.
 """
 from __future__ import annotations
 
-from collections import deque
 import threading
 import time
+from typing import Callable
 
 import numpy as np
 
-__all__ = ['Absorber']
+__all__ = ['Rebases']
 
 
-class Absorber:
+class Rebases:
     """
-    Mixin of :class:`~dgp_ros.online.learner.Learner`: appends and rebases (module docstring).
+    When and how the served model is rebased (module docstring).
 
-    Uses the learner's ``_lock``, ``_buf``, ``_model``, ``_hyper``, ``_seq``, ``_generation``,
-    ``_version``, ``_factory``, ``config`` and ``health``; owns ``_rows``, ``_model_seq``,
-    ``_model_gen``, ``_target_gen``, ``_appended`` (set by ``_reset_absorber``).
+    lock : the learner's lock (taken to read the window and to swap, never while fitting);
+    settings : returns the learner's configuration as it is now; window, structure, served,
+    refits : the parts a rebase reads and feeds; health : the learner's ``LearnerHealth``;
+    factory : builds a model (``dgp_ros.gp.make_model``).
     """
 
     #: a rebase once this fraction of ``buffer_size`` was appended since the last (re)fit
@@ -45,167 +44,117 @@ class Absorber:
     MIN_ABSORB_S = 0.02
     #: wait after a rebase, in units of its cost: 2 = at most a third of the time rebasing;
     #: a learner process raises it to BACKLOG_ABSORB_WAIT while samples queue up for it
-    absorb_wait = 2.0
+    ABSORB_WAIT = 2.0
     BACKLOG_ABSORB_WAIT = 8.0
-    #: append each sample in ``learn`` (in line); the learner process appends per round instead
-    append_each = True
-    #: appends keep up (a learner process clears it while samples queue up for it: rebases
-    #: take them in then)
-    appending = True
 
-    def _reset_absorber(self, rows: int) -> None:
-        """Forget what was appended (a new learner state; ``rows``: samples kept to append)."""
-        self._rows: deque = deque(maxlen=max(1, rows))   # (seq, target generation, qd, target)
-        self._model_seq = 0           # the model holds every learned sample up to this seq
-        self._model_gen = 0           # the target generation of the samples it holds
-        self._target_gen = 0          # bumped whenever the buffer's targets change (reselection)
-        self._appended = 0            # samples appended since the model was (re)fitted
-        self._append_blocked = False  # unheld samples the model cannot take by appending
-        self._recert_seq = -1         # _model_seq when a re-proof was last started
-        self._absorbed_at = 0.0       # perf_counter() at the end of the last rebase
-        self._absorb_cost = 0.0       # wall seconds of the last rebase
+    def __init__(self, lock, settings: Callable, window, structure, served, refits, health,
+                 factory: Callable):
+        self._lock, self._settings = lock, settings
+        self._window, self._structure, self._served = window, structure, served
+        self._refits, self._health, self._factory = refits, health, factory
+        self._thread = None
+        self._wanted = threading.Event()
+        self._at = 0.0                # perf_counter() at the end of the last rebase
+        self._cost = 0.0              # wall seconds of the last rebase
+        #: appends keep up (a learner process clears it while samples queue up for it:
+        #: rebases take them in then; ``backlog``)
+        self.appending = True
+        self._wait = self.ABSORB_WAIT
 
-    def _based(self, model, seq: int, gen: int) -> None:
-        """Serve ``model``, fitted on the buffer of ``seq`` with targets of ``gen`` (locked)."""
-        self._model = model
-        self._model_seq, self._model_gen, self._appended = seq, gen, 0
-        self._append_blocked = False
-        self._version += 1
+    def backlog(self, behind: bool) -> None:
+        """Say whether samples queue up for the learner: no appends then, rarer rebases."""
+        self.appending = not behind
+        self._wait = self.BACKLOG_ABSORB_WAIT if behind else self.ABSORB_WAIT
 
-    @property
-    def unheld(self) -> int:
-        """Learned samples the model does not hold yet."""
-        return self._seq - self._model_seq if self._model is not None else 0
+    def restart(self) -> None:
+        """Forget the last rebase's time and cost (a model adopted with its samples)."""
+        self._at = 0.0
+        self._cost = 0.0
 
-    # ------------------------------------------------------------------ appends
-    def catch_up_paused(self) -> None:
-        """
-        Append the samples the model does not hold yet, once the samples ran out.
+    # ------------------------------------------------------------------ decisions
+    def wanted(self) -> bool:
+        """Tell whether a rebase is wanted, however soon its cost allows it (``due``)."""
+        cfg, served = self._settings(), self._served
+        if served.model is None or not cfg.learning:
+            return False
+        waiting = served.unheld(self._window.seq) and (not self.appending or served.blocked)
+        return bool(waiting or self._structure.reselect_due() or
+                    served.appended >= max(1, cfg.buffer_size // self.REBASE_FRACTION))
 
-        A learner process that fell behind appends nothing while samples queue up (its rebases
-        take them in); when the stream pauses right after, nothing else would bring the last
-        ones to the model before it resumes. Cheap when there is nothing to do.
-        """
-        if self.unheld and not self._append_blocked:
-            self.catch_up()
-
-    def catch_up(self) -> int:
-        """
-        Append every learned sample the model does not hold yet; returns how many.
-
-        Nothing is appended when they are not all at hand in learning order with the model's
-        targets (evicted, or retargeted by a re-selection): the next rebase takes them. A model
-        that cannot take them (a singular update) is rebased instead.
-        """
-        with self._lock:
-            if self._model is None or self._seq <= self._model_seq:
-                return 0
-            rows = [r for r in self._rows if r[0] > self._model_seq]
-            if not rows or rows[0][0] != self._model_seq + 1 or \
-                    any(r[1] != self._model_gen for r in rows):
-                self._append_blocked = True
-                return 0
-            try:
-                self._model.update(np.array([r[2] for r in rows]),
-                                   np.array([r[3] for r in rows]))
-            except Exception as exc:    # noqa: BLE001 - the rebase takes them
-                self.health.last_absorb_error = f'append failed: {type(exc).__name__}: {exc}'
-                self._appended = self.config.buffer_size     # rebase at once
-                return 0
-            self._model_seq = rows[-1][0]
-            self._appended += len(rows)
-            self._version += 1
-            self.health.appends += len(rows)
-            return len(rows)
-
-    # ------------------------------------------------------------------ rebases
-    def _absorb_due(self) -> bool:
+    def due(self) -> bool:
         """
         Tell whether a rebase is due.
 
         When samples wait that appending does not take (a learner process that falls behind,
         samples of other targets), after ``buffer_size // REBASE_FRACTION`` appends, or when
-        the structure is to be re-selected. In line
-        (``sync``) at once (deterministic, in learning order); in a learner process or thread
-        as soon as the last rebase's cost allows (at most a third of the time rebasing; a ninth
-        while samples queue up for the learner: taking every sample in comes first).
+        the structure is to be re-selected. In line (``sync``) at once (deterministic, in
+        learning order); in a learner process or thread as soon as the last rebase's cost
+        allows (at most a third of the time rebasing; a ninth while samples queue up for the
+        learner: taking every sample in comes first).
         """
-        if not self.absorb_wanted():
+        if not self.wanted():
             return False
-        if self.config.refit_mode == 'sync':
+        if self._settings().refit_mode == 'sync':
             return True
-        return time.perf_counter() - self._absorbed_at >= max(self.MIN_ABSORB_S,
-                                                              self.absorb_wait *
-                                                              self._absorb_cost)
+        return time.perf_counter() - self._at >= max(self.MIN_ABSORB_S, self._wait * self._cost)
 
-    def absorb_wanted(self) -> bool:
-        """Tell whether a rebase is wanted, however soon its cost allows it (``_absorb_due``)."""
-        if self._model is None or not self.config.learning:
-            return False
-        waiting = self.unheld and (not self.appending or self._append_blocked)
-        return bool(waiting or self._reselect_due() or
-                    self._appended >= max(1, self.config.buffer_size // self.REBASE_FRACTION))
-
-    def _absorb_soon(self) -> None:
-        """Rebase in line (``sync``), else in the absorber thread (never on the caller's path)."""
-        if self.config.refit_mode == 'sync':
-            self._absorb()
+    def soon(self) -> None:
+        """Rebase in line (``sync``), else in the rebase thread (never on the caller's path)."""
+        if self._settings().refit_mode == 'sync':
+            self.run()
             return
-        if self._absorber is None or not self._absorber.is_alive():
-            self._absorber = threading.Thread(target=self._absorb_loop, name='dgp_absorb',
-                                              daemon=True)
-            self._absorber.start()
-        self._absorb_wanted.set()
+        if self._thread is None or not self._thread.is_alive():
+            self._thread = threading.Thread(target=self._loop, name='dgp_absorb', daemon=True)
+            self._thread.start()
+        self._wanted.set()
 
-    def _absorb_loop(self) -> None:
+    def _loop(self) -> None:
         while True:
-            self._absorb_wanted.wait()
-            self._absorb_wanted.clear()
-            self._absorb()
+            self._wanted.wait()
+            self._wanted.clear()
+            self.run()
 
-    def _absorb(self) -> None:
+    # ------------------------------------------------------------------ the rebase
+    def run(self) -> None:
         """
-        Refit the model on the buffer at its hyper-parameters (exact; O(N n^3)).
+        Refit the model on the window at its hyper-parameters (exact; O(N n^3)).
 
         The scales stay those of the last hyper-parameter fit; with ``prior='auto'`` the frozen
-        prior is the newest fit of the long history (``structure``). A certifying mode's proof is
-        left to the re-proof job (``fit(prove=False)``). The samples learned while it ran are
+        prior is the newest fit of the long history (``structure``). A certifying mode's proof
+        is left to the re-proof job (``fit(prove=False)``). The samples learned while it ran are
         appended to it after it is swapped in, by the thread that learns them.
         """
         t0 = time.perf_counter()
+        win, st = self._window, self._structure
         with self._lock:
-            seq, generation, hyper = self._seq, self._generation, self._hyper
-            if self._reselect_due():
-                self._reselect()        # retargets the buffer; the prior rides in the hyper
-            gen = self._target_gen
-            Q, T = self._buf.arrays()
-            kw = dict(self._model_kw(), hyperparams=self._with_prior(hyper))
-            correction = self._correction()
+            cfg = self._settings()
+            seq, generation, hyper = win.seq, self._refits.generation, self._refits.hyper
+            if st.reselect_due():
+                st.reselect(win)        # retargets the window; the prior rides in the hyper
+            gen = win.target_gen
+            Q, T = win.arrays()
+            kw = dict(st.model_kw(cfg), hyperparams=st.with_prior(hyper))
+            correction = st.correction()
         why = ''
         try:
-            model = self._factory(self.config.model, **kw).fit(Q, T, optimize=False,
-                                                               prove=False)
+            model = self._factory(cfg.model, **kw).fit(Q, T, optimize=False, prove=False)
             model.correction_ = correction
             if not np.all(np.isfinite(model.posterior_.weights)):
                 why = 'non-finite weights'
         except Exception as exc:        # noqa: BLE001 - the incumbent keeps serving
             why = f'{type(exc).__name__}: {exc}'
         with self._lock:
-            self._absorb_cost = time.perf_counter() - t0
-            self._absorbed_at = time.perf_counter()
-            if generation != self._generation or hyper is not self._hyper:
+            self._cost = time.perf_counter() - t0
+            self._at = time.perf_counter()
+            if generation != self._refits.generation or hyper is not self._refits.hyper:
                 return                  # reset, or a refit swapped in other hyper-parameters
-            h = self.health
+            h = self._health
             if why:                     # the samples wait for the next refit
                 h.absorbs_rejected += 1
                 h.last_absorb_error = why
                 return
             # the samples learned meanwhile are appended by the thread that learns them (in
             # a thread of the node process the message path answers from this very model)
-            self._based(model, seq, gen)
+            self._served.based(model, seq, gen)
             h.absorbs += 1
             h.last_absorb_error = ''
-
-    def _proof_gap(self, base: float) -> float:
-        """Stamp seconds between re-proofs: ``base``, doubled per failed proof in a row (<= 8x)."""
-        return base * 2 ** min(self.health.proofs_failed_in_a_row, 3)

@@ -270,3 +270,21 @@ def _bound(snap: Snapshot, Q, tau, D, health, passivity: str):
             D = D.copy()
             D[big] *= s[:, :, None]
     return tau, D
+
+
+def guarantee(snap: Optional[Snapshot], passivity: str) -> str:
+    """
+    Return the guarantee the answers from ``snap`` are served under (``gp.GUARANTEES`` key).
+
+    The served model's certificate as it is (a record, read at no cost); before the first fit
+    the prior ``diag(m_d)``, ``m_d >= 0``: 'psd' (as the learner's status says).
+    """
+    if passivity == 'none':
+        return 'none'
+    model = None if snap is None else snap.model
+    if model is None:
+        return 'psd'
+    try:
+        return str(model.certificate().guarantee)
+    except Exception:       # noqa: BLE001 - an unfitted model: its answers fall back to the prior
+        return 'psd'

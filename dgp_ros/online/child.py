@@ -150,8 +150,7 @@ class LearnerLoop:
         L = self.learner
         # a full round means more are waiting: rebase less often and append nothing until the
         # queue is drained (the rebases take the samples in then)
-        L.appending = rows.shape[0] < want
-        L.absorb_wait = type(L).absorb_wait if L.appending else L.BACKLOG_ABSORB_WAIT
+        L.rebases.backlog(rows.shape[0] >= want)
         if not rows.shape[0]:
             L.catch_up_paused()             # the last samples of a backlog reach the model
             return False
@@ -165,7 +164,7 @@ class LearnerLoop:
                                         r[1 + N:1 + 2 * N].copy(),
                                         None if np.isnan(q[0]) else q.copy())
             done.extend(res)
-        if L.appending:
+        if L.rebases.appending:
             # the round's samples reach the model at once (one block); while samples queue up
             # the rebases take them in instead: one refit per batch costs less
             L.catch_up()
@@ -239,7 +238,7 @@ class LearnerLoop:
         if L.refit_running() or L.version != self.sent_version or \
                 L.gains_seq != self.sent_gains:
             return False
-        if L.config.learning and (L.unheld or L.absorb_wanted()) and \
+        if L.config.learning and (L.unheld or L.rebases.wanted()) and \
                 L.health.absorbs_rejected == self.rejected_at:
             return False                 # (a running rebase is still wanted until it ends)
         return self.ring is None or self.ring.pending(timeout=0) == 0

@@ -31,10 +31,12 @@ import numpy as np
 
 from dgp_ros.gp.passivity import policy_class
 
-from .answer import answer, Estimate
-from .batch import ArrayPath
+from .answer import answer, Estimate, guarantee
+from .batch import Answers, last_estimate
+from .clock import LearningClock
 from .config import EstimatorConfig
 from .health import Health
+from .intake import Intake
 from .learner import FRONT_END, Learner
 from .plan import PlanCache
 from .snapshot import Snapshot
@@ -42,9 +44,14 @@ from .snapshot import Snapshot
 __all__ = ['OnlineEstimator', 'Estimate']
 
 
-class OnlineEstimator(ArrayPath):
+class OnlineEstimator:
     """
     Online D-GP estimator (module docstring).
+
+    Its parts: ``intake`` (the joints and the checks of every message: ``intake.Intake``),
+    ``clock`` (the learning time: ``clock.LearningClock``), the learner (``learner.Learner`` or
+    ``process.LearnerProcess``), ``health`` (the message path's counters) and the answer plans
+    (``plan.PlanCache``); one lock serializes the message path, diagnostics and control.
 
     Parameters
     ----------
@@ -55,10 +62,6 @@ class OnlineEstimator(ArrayPath):
         Reads ``model_path`` (default ``dgp_ros.gp.load_model``); in-process learners only.
 
     """
-
-    #: equal stamps in a row after which learning switches to arrival time (and advancing ones
-    #: after which it switches back)
-    STALLED_STAMPS = 20
 
     def __init__(self, config: Optional[EstimatorConfig] = None,
                  model_factory: Optional[Callable] = None,
@@ -80,17 +83,14 @@ class OnlineEstimator(ArrayPath):
 
     # ------------------------------------------------------------------ state
     def _init_state(self) -> None:
-        names = list(self.config.joints) or list(self._learner.joint_names())
-        self._names: Optional[List[str]] = names or None
-        self._N: Optional[int] = len(names) or None
-        self._raw_last_stamp: Optional[float] = None
-        self._last_t: Optional[float] = None
-        self._same_stamps = 0
-        self._advancing = 0
-        self._arrival_t0: Optional[float] = None        # set: learning uses arrival time
+        self.intake = Intake(self._settings, list(self.config.joints) or
+                             list(self._learner.joint_names()), self._learner.needs_position)
+        self.clock = LearningClock()
         self._last_est = None               # the newest Estimate (or batch of Answers)
-        self._order = None                  # (a message's names, their configured order)
         self.health = Health()
+
+    def _settings(self) -> EstimatorConfig:
+        return self.config
 
     def set_outputs(self, stddev: bool = True, damping: bool = True,
                     residuals: bool = True) -> None:
@@ -162,7 +162,7 @@ class OnlineEstimator(ArrayPath):
 
     @property
     def names(self) -> Optional[List[str]]:
-        return None if self._names is None else list(self._names)
+        return self.intake.names
 
     def samples(self) -> Tuple[np.ndarray, np.ndarray]:
         """Return copies of the buffered samples, (Qd, Tau), (n, N) each, oldest first."""
@@ -206,8 +206,7 @@ class OnlineEstimator(ArrayPath):
                                       np.array([a[3] for a in group]))
                 keep = []
                 for i, stamp, names, qd, tau, q in group:
-                    added, residuals = self._learner.learn(self._learning_time(stamp), qd, tau,
-                                                           q)
+                    added, residuals = self._learner.learn(self.clock.time(stamp), qd, tau, q)
                     keep.append((i, stamp, names, qd, tau, added, residuals))
                 self._answer(keep, pred, out, t0)
         return out
@@ -233,13 +232,13 @@ class OnlineEstimator(ArrayPath):
 
     def _accept(self, stamp_s, names, velocity, effort, position):
         """Validate one message (counted); (stamp, names, qd, tau, q) or None if rejected."""
-        h = self.health
+        h, intake = self.health, self.intake
         h.messages_received += 1
         try:
             stamp = float(stamp_s)
         except (TypeError, ValueError, OverflowError):
             stamp = float('nan')
-        sel = self._validate(names, velocity, effort, position)
+        sel = intake.check(names, velocity, effort, position)
         if isinstance(sel, str):            # content problems are reported first
             h.reject(sel)
             return None
@@ -248,107 +247,74 @@ class OnlineEstimator(ArrayPath):
             return None
         names, qd, tau, q = sel
         h.gaps.note(stamp)
-        if self._N is None:
-            try:
-                self.config.check_dimension(qd.size)
-            except ValueError:              # per-joint parameters for another joint count
-                h.reject('dimension_mismatch')
-                return None
-            self._N = qd.size
+        why = intake.admit(qd, names)
+        if why:
+            h.reject(why)
+            return None
         h.accept()
-        if self._names is None and names:
-            self._names = list(names)
-            self._learner.set_joint_names(self._names)     # the correction basis needs them
+        if intake.name(names):
+            self._learner.set_joint_names(intake.names)     # the correction basis needs them
         return stamp, names, qd, tau, q
 
-    def _learning_time(self, stamp: float) -> float:
+    # ------------------------------------------------------------------ arrays
+    def process_arrays(self, sec: np.ndarray, nsec: np.ndarray, names: tuple,
+                       velocity: np.ndarray, effort: np.ndarray,
+                       position: Optional[np.ndarray] = None) -> Optional[Answers]:
         """
-        Return the time learning decisions use (s).
+        ``process_batch`` for k messages with the same names and array lengths, as arrays.
 
-        The message stamp, unless stamps stopped advancing (``STALLED_STAMPS`` equal stamps in a
-        row: a driver that leaves header.stamp at 0 or constant); then the arrival time, with a
-        WARN. Answers keep the message's own stamp either way.
+        sec, nsec : (k,) integer stamps (``header.stamp``); names : (n,) the messages' joint
+        names; velocity, effort : (k, n); position : (k, n) or None (the messages have none).
+        Returns the answers of the accepted messages (their ``rows``); None when the batch
+        must take the per-message path (nothing was counted or learned then): ``sync`` (one
+        answer per model), before the first accepted message (the joints are not known yet),
+        messages without names or with arrays of other lengths. What is learned and answered
+        is exactly what ``process_batch`` learns and answers for the same messages.
         """
-        advancing = self._raw_last_stamp is not None and stamp > self._raw_last_stamp
-        self._raw_last_stamp = stamp
-        if self._arrival_t0 is None:
-            self._same_stamps = 0 if advancing else self._same_stamps + 1
-            if self._same_stamps >= self.STALLED_STAMPS:
-                self._arrival_t0 = time.monotonic() - (self._last_t or 0.0)
-                self._advancing = 0
-        else:
-            self._advancing = self._advancing + 1 if advancing else 0
-            if self._advancing >= self.STALLED_STAMPS:      # the stamps recovered
-                self._arrival_t0 = None
-                self._same_stamps = 0
-        t = stamp if self._arrival_t0 is None else time.monotonic() - self._arrival_t0
-        self._last_t = t
-        return t
-
-    def _validate(self, names, velocity, effort, position):
-        """
-        Validate one message.
-
-        One message's content: (names, qd, tau, q) in the configured joint order (``q`` None
-        unless the learner uses positions), or the rejection reason (a string).
-        """
-        if velocity is None or effort is None:
-            return 'empty'
-        try:
-            v = np.asarray(velocity, dtype=float).ravel()
-            e = np.asarray(effort, dtype=float).ravel()
-            p = None
-            if self._learner.needs_position:
-                p = np.asarray([] if position is None else position, dtype=float).ravel()
-        except (TypeError, ValueError, OverflowError):
-            return 'non_finite'
-        try:
-            names = list(names) if names is not None else []
-            if len(set(names)) != len(names):
-                return 'duplicate_name'
-        except TypeError:                      # not iterable, or unhashable entries
-            return 'bad_names'
-        if not all(isinstance(n, str) for n in names):
-            return 'bad_names'
-        if v.size == 0 or e.size == 0:
-            return 'empty'
-        if p is not None and p.size == 0:
-            return 'missing_position'
-        if v.size != e.size or (names and len(names) != v.size) or \
-                (p is not None and p.size != v.size):
-            return 'length_mismatch'
-        if self._names is not None and names:
-            key = tuple(names)
-            cached = self._order
-            if cached is not None and cached[0] == key:     # a driver sends the same names
-                idx = cached[1]
+        t0 = time.perf_counter()
+        if self.config.refit_mode == 'sync' or \
+                not self.intake.batch_ready(names, velocity, effort, position):
+            return None
+        with self._lock:
+            N, joints = self.intake.N, tuple(self.intake.names)
+            reasons, stamps, acc = self.intake.check_batch(sec, nsec, names, velocity, effort,
+                                                           position)
+            if reasons is None:                 # every message accepted (the usual case)
+                rows = np.arange(len(stamps))
             else:
-                pos = {n: i for i, n in enumerate(names)}
-                try:
-                    idx = np.array([pos[n] for n in self._names], dtype=np.intp)
-                except KeyError:
-                    return 'missing_joint'
-                self._order = (key, idx)
-            v, e, names = v[idx], e[idx], list(self._names)
-            p = None if p is None else p[idx]
-        elif self._names is not None and not names and self.config.joints:
-            return 'missing_joint'
-        if self._N is None and v.size > self.config.max_joints:
-            return 'too_many_joints'
-        if self._N is not None and v.size != self._N:
-            return 'dimension_mismatch'
-        if not (np.isfinite(v).all() and np.isfinite(e).all() and
-                (p is None or np.isfinite(p).all())):
-            return 'non_finite'
-        if (np.abs(v) > self.config.max_abs_velocity).any() or \
-                (np.abs(e) > self.config.max_abs_effort).any():
-            return 'out_of_range'
-        return names, v, e, p
+                ok = reasons == ''
+                rows = np.flatnonzero(ok)
+                stamps = stamps[ok]
+            self.health.count_batch(reasons, stamps)
+            qd, tau, q = acc if acc is not None else (np.zeros((0, N)),) * 2 + (None,)
+            if not rows.size:
+                e = np.zeros((0, N))
+                return Answers(rows, joints, stamps[:0], e, e, None, e, e, None, np.zeros(0),
+                               np.zeros(0), np.zeros(0, dtype=object),
+                               time.perf_counter() - t0, [])
+            pred = self._estimate(self._learner.snapshot(self._want_stddev), qd)
+            self._learner.learn_many(self.clock.times(stamps), qd, tau, q)
+            return self._array_answers(joints, rows, stamps, qd, tau, q, pred, t0)
+
+    def _array_answers(self, joints, rows, stamps, qd, tau, q, pred, t0) -> Answers:
+        tau_hat, std, D, source, conf = pred
+        # each as process_batch computes it (the same floats): one dot product per answer
+        power = np.array([a @ b for a, b in zip(qd, tau_hat)])
+        if self.config.passivity != 'none':
+            np.maximum(power, 0.0, out=power)      # rounding only (the gate replaced the others)
+        measured = np.array([a @ b for a, b in zip(qd, tau)])
+        residuals = self._learner.take_residuals()
+        dt = time.perf_counter() - t0
+        a = Answers(rows, joints, stamps, qd, tau, q, tau_hat, std, D, power, measured, source,
+                    dt, residuals, conf)
+        self.health.latencies.extend([dt] * len(rows))
+        self._last_est = a
+        return a
 
     # ------------------------------------------------------------------ estimates
     def _estimate(self, snap: Optional[Snapshot], Q: np.ndarray):
         """(tau_hat, std, D, source, confidence) at velocities Q (k, N) from ``snap`` (gate)."""
-        self.health.answered(_guarantee(snap, self.config.passivity), Q.shape[0])
+        self.health.answered(guarantee(snap, self.config.passivity), Q.shape[0])
         return answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
                       self.health, self._learner.note_error, self._plans)
 
@@ -402,15 +368,15 @@ class OnlineEstimator(ArrayPath):
     def check_reconfigure(self, config: EstimatorConfig) -> None:
         """Raise ValueError (with the reason) if ``reconfigure(config)`` would fail."""
         config = dataclasses.replace(config).validate()
-        if self._N is not None:
-            config.check_dimension(self._N)
+        if self.intake.N is not None:
+            config.check_dimension(self.intake.N)
         self._learner.check_reconfigure(config)
 
     def reconfigure(self, config: EstimatorConfig) -> str:
         """Apply a new validated config; structural changes drop the model and refit."""
         config = dataclasses.replace(config).validate()
-        if self._N is not None:
-            config.check_dimension(self._N)
+        if self.intake.N is not None:
+            config.check_dimension(self.intake.N)
         with self._lock:
             what = self._learner.reconfigure(config)
             old, self.config = self.config, config
@@ -444,13 +410,13 @@ class OnlineEstimator(ArrayPath):
         """
         learner = self._learner.status()
         with self._lock:
-            last = self.last_estimate(self._last_est)
+            last = last_estimate(self._last_est)
             d = {'model': self.config.model, 'passivity': self.config.passivity,
                  'measured_power': last.measured_power if last else float('nan'),
                  'estimated_power': last.power if last else float('nan'),
                  'last_source': last.source if last else '',
                  'buffer_size': self.config.buffer_size,
-                 'learning_clock': 'arrival' if self._arrival_t0 is not None else 'stamp'}
+                 'learning_clock': 'arrival' if self.clock.on_arrival else 'stamp'}
             d.update({k: v for k, v in learner.items()
                       if k not in ('warnings', 'version', 'refit_durations')})
             d.update(self.health.counters())
@@ -458,7 +424,7 @@ class OnlineEstimator(ArrayPath):
                 # the lean pass disagreed with the model (answers came from the model)
                 d['answer_plan_mismatches'] = self._plans.mismatches
             warnings = list(learner.get('warnings', []))
-            if self._arrival_t0 is not None:
+            if self.clock.on_arrival:
                 warnings.insert(0, 'message stamps do not advance (header.stamp constant or 0): '
                                 "learning uses the arrival time; fix the driver's stamps")
             state = {'trained': d.get('trained', False), 'fill': d.get('buffer_fill', 0),
@@ -478,21 +444,3 @@ class OnlineEstimator(ArrayPath):
     def negative_power_fraction(self) -> Optional[float]:
         """Fraction of the recent learned samples with ``qd . target < 0`` (None: too few)."""
         return self._learner.status().get('negative_power_fraction')
-
-
-def _guarantee(snap: Optional[Snapshot], passivity: str) -> str:
-    """
-    Return the guarantee the answers from ``snap`` are served under (``gp.GUARANTEES`` key).
-
-    The served model's certificate as it is (a record, read at no cost); before the first fit
-    the prior ``diag(m_d)``, ``m_d >= 0``: 'psd' (as the learner's status says).
-    """
-    if passivity == 'none':
-        return 'none'
-    model = None if snap is None else snap.model
-    if model is None:
-        return 'psd'
-    try:
-        return str(model.certificate().guarantee)
-    except Exception:       # noqa: BLE001 - an unfitted model: its answers fall back to the prior
-        return 'psd'

@@ -8,14 +8,11 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Dict, Optional
 
 import numpy as np
 
-from .grounds import EVIDENCE_S
-
-__all__ = ['Health', 'LearnerHealth', 'LearnerReport', 'GapCounter', 'POWER_WINDOW',
-           'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
+__all__ = ['Health', 'LearnerHealth', 'GapCounter', 'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
 
 # Reasons a message can be rejected for (one counter each).
 # ``undecodable``: bytes that are not a JointState (the node's raw subscription; a bag's reader).
@@ -32,14 +29,9 @@ REJECT_WARN_FRACTION = 0.1
 REFIT_FAIL_ERROR = 3
 #: missing messages (estimated from stamp gaps) above this fraction of the recent stream: WARN
 MISSING_WARN_FRACTION = 0.01
-#: learned samples over which the negative-power warning is decided (and the least it needs)
-POWER_WINDOW, POWER_MIN = 1000, 100
 #: refits the failure rate is judged over, and the rate that makes a WARN (never 'ok' while a
 #: third of them fail: a UR10 whose 4 refits of 9 failed said 'ok')
 RECENT_REFITS, REFIT_FAIL_WARN_FRACTION = 9, 1.0 / 3.0
-#: one-step skill (1 - MSE / MSE of no answer) by which the model may trail its parametric part
-#: on a joint, over the last seconds, before the status says so
-SKILL_WARN_MARGIN = 0.1
 
 
 class GapCounter:
@@ -246,6 +238,30 @@ class Health:
         r = self.recent_ok
         return (r.count(False) / len(r)) if r else 0.0
 
+    def count_batch(self, reasons, stamps) -> None:
+        """
+        Count a batch of messages as ``OnlineEstimator._accept`` counts each, in order.
+
+        reasons : None (every message accepted) or (k,) ('' accepted); stamps : the accepted
+        messages' stamps.
+        """
+        h = self
+        if reasons is None:
+            k = len(stamps)
+            h.messages_received += k
+            h.messages_accepted += k
+            h.recent_ok.extend([True] * k)
+        else:
+            h.messages_received += len(reasons)
+            for r in reasons:
+                if r:
+                    h.reject(r)
+                else:
+                    h.accept()
+        note = h.gaps.note
+        for s in stamps.tolist():
+            note(s)
+
     def counters(self) -> dict:
         lat = np.array(self.latencies) if self.latencies else None
         return {
@@ -346,133 +362,3 @@ class Health:
             reasons.append(w)
             level = max(level, WARN)
         return level, ('; '.join(reasons) if reasons else 'ok')
-
-
-class LearnerReport:
-    """Mixin of the learner: its part of the diagnostics (the learner provides the state)."""
-
-    #: stamp time without a learned sample (while moving) after which learning is said to stall
-    STALL_WARN_S = 30.0
-
-    def status(self) -> dict:
-        """Return the learner's part of the diagnostics (counters, certificate, warnings)."""
-        with self._lock:
-            cert = self._model.certificate() if self._model is not None else None
-            d = {
-                'trained': self._model is not None,
-                'certified': bool(cert.certified) if cert is not None else False,
-                'certificate_stale': bool(cert.stale) if cert is not None else False,
-                'margin': float(cert.margin) if cert is not None else float('nan'),
-                'method': str(cert.method) if cert is not None else '',
-                'domain': str(cert.domain) if cert is not None else '',
-                # which guarantee holds now (gp.policy.GUARANTEES); before the first fit the
-                # answer is the prior mean diag(m_d) qd with m_d >= 0: PSD by construction
-                'guarantee': (str(cert.guarantee) if cert is not None else
-                              'none' if self.config.passivity == 'none' else 'psd'),
-                'learning': self.learning_state,
-                'buffer_fill': 0 if self._buf is None else self._buf.size,
-                'refit_running': self.refit_running(),
-                'load_error': self.load_error, 'hyper_samples': self._opt_n,
-                # learned while a refit runs (a sample may land just as one ends: not one)
-                'pending_samples': len(self._pending) if self.refit_running() else 0,
-                'negative_power_fraction': self.negative_power_fraction(),
-                'residual_delay_s': self._front.delay_s,
-                'accel_filter_restarts': self._front.restarts,
-                'accel_filter_dropped': self._front.dropped,
-                'bias': (None if self._model is None or not self.config.bias else
-                         [round(float(b), 6) for b in self._model.bias_]),
-                'version': self._version,
-                'structure': self.health.structure,
-                'structure_scores': dict(self.health.structure_scores),
-                'elements': self.health.elements,
-                'elements_scores': dict(self.health.elements_scores),
-                'correction_basis': self.health.correction_basis,
-                'corrections_refused': self.health.corrections_refused,
-                'offsets': (None if self._param is None or not np.any(self._param.offsets) else
-                            [round(float(b), 6) for b in self._param.bias]),
-                'warnings': self._warnings(),
-            }
-            d.update(self.health.counters())
-            d.update(self.skill_summary())
-            return d
-
-    def _warnings(self) -> List[str]:
-        """Conditions on the data the user should act on (WARN with the reason)."""
-        out = []
-        if self.config.awaits_urdf:
-            out.append('waiting for the robot model: inverse_dynamics=urdf and neither '
-                       'robot_description nor urdf_file is set; nothing is learned until a URDF '
-                       'arrives on /robot_description (robot_state_publisher publishes it)')
-        if self._stalled():
-            out.append(f'learning stalled: no sample learned for '
-                       f'{self._last_t - self._last_added_t:.0f} s while the velocities '
-                       f'moved (check selection_min_distance / selection_scale)')
-        frac = self.negative_power_fraction()
-        if frac is not None and frac > self.config.negative_power_warn_fraction:
-            what = 'effort - inverse dynamics' if self._inverse is not None else 'effort'
-            hint = ('check the URDF, the joint order and the torque sign convention'
-                    if self._inverse is not None else
-                    'raw joint torques hold gravity and inertia: set inverse_dynamics (urdf and '
-                    'robot_description, or a python plugin) so the rigid-body torque is '
-                    'subtracted')
-            out.append(f'data are not damping: qd . ({what}) < 0 on {100 * frac:.0f}% of the '
-                       f'recent samples (friction dissipates); {hint}')
-        out += self._front_warnings() + self._skill_warnings()
-        return out
-
-    def _front_warnings(self) -> List[str]:
-        """Warn of the residual front end: a stream too slow, dropped samples, a failing plugin."""
-        out, f, h = [], self._front.filter, self.health
-        if f is not None and f.too_slow:
-            out.append(f'the stream is too slow for the acceleration filter: one sample every '
-                       f'{1e3 * f.sample_interval_s:.0f} ms, its longest window (0.2 s each '
-                       'side) holds fewer than 2 per side; nothing is learned: publish '
-                       'joint_states at 10 Hz or more')
-        elif f is not None and f.samples_out < f.dropped and f.dropped >= 20:
-            out.append(f'the acceleration filter dropped {f.dropped} of the residual samples '
-                       f'(gaps of over {1e3 * max(f.max_gap_s, 4 * f.sample_interval_s):.0f} ms '
-                       'or stamps that go back restart it): few samples are learned; a longer '
-                       'accel_half_window_s bridges short gaps')
-        if h.inverse_dynamics_errors and h.inverse_dynamics_errors >= 0.01 * max(
-                h.samples_added + h.samples_rate_limited, 1):
-            out.append(f'inverse dynamics failed on {h.inverse_dynamics_errors} samples (not '
-                       'learned; check the plugin, the joints and their order)')
-        return out
-
-    def _skill_warnings(self) -> List[str]:
-        """Joints whose answers trail their parametric part, or no answer (``grounds``)."""
-        s = self._skill
-        if s is None or s.evidence_s < EVIDENCE_S or self._model is None:
-            return []
-        sm = s.summary()
-        names = self._structure_names() or [str(j) for j in range(self._N or 0)]
-        worse = [names[j] for j, (m, p) in enumerate(zip(sm['skill_model'], sm['skill_prior']))
-                 if m is not None and p is not None and m < p - SKILL_WARN_MARGIN]
-        out = []
-        if worse:
-            out.append(f'the model answers worse than its parametric part on {", ".join(worse)} '
-                       '(one-step, the last seconds): the answers fall back to it there')
-        return out
-
-    def _stalled(self) -> bool:
-        """
-        Tell whether learning is stalled.
-
-        No sample learned for ``STALL_WARN_S`` of learning time although the recent
-        candidates spread over many novelty distances (not a hovering state).
-        """
-        if not self.config.learning or self._last_added_t is None or self._last_t is None or \
-                self._buf is None or \
-                self._last_t - self._last_added_t < self.STALL_WARN_S or \
-                len(self._recent_q) < 10:
-            return False
-        Q = np.array(self._recent_q)
-        spread = (Q.max(axis=0) - Q.min(axis=0)) / self._selector.scale(self.config, self._buf)
-        return bool(spread.max() > 10.0 * max(self.config.selection_min_distance, 1e-3))
-
-    def negative_power_fraction(self) -> Optional[float]:
-        """Fraction of the recent learned samples with ``qd . target < 0`` (None: too few)."""
-        p = self._learned_power
-        if len(p) < POWER_MIN:
-            return None
-        return float(np.mean(np.asarray(p) < 0.0))

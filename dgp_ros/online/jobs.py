@@ -1,34 +1,50 @@
 """
-Refit and re-proof jobs of the learner: start, integrate, swap (no rclpy).
+Refit and re-proof jobs of the learner: when, start, integrate, swap (no rclpy).
 
-``JobRunner`` is the job half of :class:`~dgp_ros.online.learner.Learner`: it starts a job
+A part of :class:`~dgp_ros.online.learner.Learner` that owns the jobs' state: the refit clock,
+the hyper-parameters the served model was fitted at and the data they were learned on, the
+novelty trigger, retries, the samples a running fit has not seen, the job thread and the
+generation (a reset or switching learning off discards what runs).
+
+It decides what runs next (``next_job``: a refit at ``min_samples``, then every
+``refit_period_s`` of learning time, on request, when the buffer doubled, when data leave the
+hyper-parameters' ground, a retry; else a re-proof of a stale certificate), starts it
 (``worker.run_job``: in a background thread with ``refit_mode='async'``, in line with
 ``'sync'``), and integrates its result: the candidate is compared one step ahead with the
 incumbent on the samples that arrived during its fit (``_held_out``), refitted at its new
-hyper-parameters on the buffer as it is now, and swapped in under the lock, which is held only to
-read the buffer and for the swap. A re-proven model is caught up with the samples appended to the
-served one meanwhile. An unproven candidate serves with every answer projected (``worker``);
-re-proofs after failed ones wait longer (``Absorber._proof_gap``).
+hyper-parameters on the window as it is now, and swapped in under the lock, which is held only
+to read the window and for the swap. A re-proven model is caught up with the samples appended to
+the served one meanwhile. An unproven candidate serves with every answer projected
+(``worker``); re-proofs after failed ones wait longer (``proof_gap``). The learning switch's
+freeze job runs here too (``switch``: ``set_freezer``).
 """
 from __future__ import annotations
 
+from collections import deque
 import copy
 import dataclasses
 import threading
 import time
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 
 from dgp_ros.gp.select import choice_summary
 
-from .worker import prove, RefitJob, RefitResult, run_job
+from .worker import held_out, prove, RefitJob, RefitResult, run_job
 
-__all__ = ['JobRunner']
+__all__ = ['Refits']
 
 
-class JobRunner:
-    """Mixin: the learner's jobs (see the module docstring); the learner provides the state."""
+class Refits:
+    """
+    The learner's jobs (module docstring).
+
+    lock : the learner's lock; settings : returns the configuration as it is now; window,
+    structure, served : the parts a job reads and feeds; health : the learner's
+    ``LearnerHealth``; factory : builds a model; save : the learner's ``save(path)`` (a model
+    swapped in is saved to ``model_path``); generation : where to start counting.
+    """
 
     #: a stamp this many refit periods ahead of the refit clock is a jump, not elapsed time
     CLOCK_JUMP_PERIODS = 10
@@ -38,17 +54,111 @@ class JobRunner:
     #: rejected candidates retried on fresh data before waiting for the next refit period
     #: (without any model: always, each retry waiting twice as many samples, up to 64 x)
     MAX_RETRIES = 3
+    #: samples arriving during a refit on which its held-out check compares the models: the
+    #: first this many, then evenly spread ones up to twice as many
+    HELD_OUT_EVERY = 20
 
     #: a learned sample beyond the velocities the hyper-parameters were learned on, by this
-    #: fraction of their range on any joint, asks for an optimizing refit (``_note_novelty``) ...
+    #: fraction of their range on any joint, asks for an optimizing refit (``note_novelty``) ...
     NOVELTY_MARGIN = 0.1
     #: ... where the model's error on it is beyond this many times its recent RMS error ...
     NOVELTY_SURPRISE = 2.5
     #: ... at most once per this much learning time (s)
     NOVELTY_GAP_S = 1.0
 
+    def __init__(self, lock, settings: Callable, window, structure, served, health,
+                 factory: Callable, save: Callable, generation: int = 0):
+        self._lock, self._settings = lock, settings
+        self._window, self._structure, self._served = window, structure, served
+        self._health, self._factory, self._save = health, factory, save
+        self._generation = int(generation)
+        self._thread: Optional[threading.Thread] = None
+        self._freeze: Optional[Callable] = None      # runs a 'freeze' job (``switch``)
+        self._freeze_due: Callable = lambda: None   # a freeze job wanted after a job, or None
+        self._hyper: Optional[dict] = None   # warm start of the next fit (hyperparams_)
+        self._opt_n = 0                   # samples the current hyper-parameters were learned on
+        self._hyper_box = None            # their velocity box (``note_novelty``)
+        self._novel, self._novel_t = False, None
+        self._clock: Optional[float] = None   # learning time of the last refit decision
+        self._last_recert: Optional[float] = None
+        self._recert_seq = -1             # the served model's ``held`` at the last re-proof
+        self._requested = False
+        self._retry_at: Optional[int] = None  # window seq at which a rejected fit is retried
+        # (seq, qd, tau) added while a refit runs; only the newest buffer_size can survive the
+        # model's window, so older ones are dropped here
+        self._pending: deque = deque(maxlen=settings().buffer_size)
+
+    def set_freezer(self, run: Callable, due: Callable) -> None:
+        """Take the switch's freeze: ``run(job)`` runs one, ``due()`` returns one or None."""
+        self._freeze, self._freeze_due = run, due
+
+    # ------------------------------------------------------------------ state
+    @property
+    def generation(self) -> int:
+        """Return the count of discards: a job or rebase of another generation is dropped."""
+        return self._generation
+
+    def discard(self) -> None:
+        """Drop what runs now when it ends (a reset, learning switched off)."""
+        self._generation += 1
+
+    @property
+    def hyper(self) -> Optional[dict]:
+        """Return the served model's hyper-parameters (the warm start of the next fit)."""
+        return self._hyper
+
+    @property
+    def hyper_samples(self) -> int:
+        """Return how many samples the hyper-parameters were learned on."""
+        return self._opt_n
+
+    def running(self) -> bool:
+        """Tell whether a job runs in the job thread."""
+        t = self._thread
+        return t is not None and t.is_alive()
+
+    @property
+    def thread(self) -> Optional[threading.Thread]:
+        """Return the job thread, None in line or before any job."""
+        return self._thread
+
+    def pending(self) -> int:
+        """Return how many samples arrived during the running fit (0 when none runs)."""
+        return len(self._pending) if self.running() else 0
+
+    def adopted(self, model, X: np.ndarray) -> None:
+        """Take an adopted model's hyper-parameters, learned on X (n, N)."""
+        self._hyper = model.hyperparams_
+        self._opt_n = X.shape[0]
+        self._hyper_box = (X.min(axis=0), X.max(axis=0))
+        self._clock = None              # set by the first message
+        self._recert_seq = -1
+
+    def resumed(self) -> None:
+        """Learning was switched on again: the clocks start at the next sample."""
+        self._clock = None
+        self._last_recert = None
+
+    def note_sample(self, seq: int, qd: np.ndarray, target: np.ndarray) -> None:
+        """Keep a sample learned while a fit runs (its held-out check: ``_held_out``)."""
+        if self.running():
+            self._pending.append((seq, qd.copy(), target.copy()))
+
+    def request_soon(self) -> None:
+        """Refit at the next sample (the model was dropped, its data kept)."""
+        self._requested = True
+
+    def jumped_back(self, t: float) -> None:
+        """Restart the refit clock at ``t``: a stamp went back."""
+        if self._clock is not None:
+            self._clock = t
+
+    def proof_gap(self, base: float) -> float:
+        """Stamp seconds between re-proofs: ``base``, doubled per failed proof in a row (<= 8x)."""
+        return base * 2 ** min(self._health.proofs_failed_in_a_row, 3)
+
     # ------------------------------------------------------------------ decisions
-    def _note_novelty(self, stamp: float, qd: np.ndarray, surprise: float) -> None:
+    def note_novelty(self, stamp: float, qd: np.ndarray, surprise: float) -> None:
         """
         Ask for an optimizing refit when the data leave what the hyper-parameters were fitted on.
 
@@ -58,16 +168,16 @@ class JobRunner:
         samples appended meanwhile are taken at those. So a learned sample beyond the box of the
         last optimization's velocities (grown by ``NOVELTY_MARGIN`` of its range) that the model
         answered badly (``surprise``: its one-step error over its recent RMS error, beyond
-        ``NOVELTY_SURPRISE``, where the error is more than ``grounds.SURPRISE_SIGNAL`` of the
+        ``NOVELTY_SURPRISE``, where the error is more than ``skill.SURPRISE_SIGNAL`` of the
         force's RMS) makes the next refit one that re-learns them, at most
         every ``NOVELTY_GAP_S`` of learning time (``novelty_refits`` on /diagnostics). A model
         that extrapolates well into new territory is left alone: an arm's first cycle leaves
         the box all the time.
         """
         box = self._hyper_box
-        cfg = self.config
-        if box is None or self._model is None or not surprise > self.NOVELTY_SURPRISE or \
-                cfg.optimize_every_n_refits == 0 or cfg.refit_period_s == 0:    # by request
+        cfg = self._settings()
+        if box is None or self._served.model is None or not surprise > self.NOVELTY_SURPRISE \
+                or cfg.optimize_every_n_refits == 0 or cfg.refit_period_s == 0:   # by request
             return
         lo, hi = box
         grow = self.NOVELTY_MARGIN * np.maximum(hi - lo, 1e-12)
@@ -75,117 +185,137 @@ class JobRunner:
             last = self._novel_t
             if last is None or stamp < last or stamp - last >= self.NOVELTY_GAP_S:
                 self._novel, self._novel_t = True, stamp
-                self.health.novelty_refits += 1
+                self._health.novelty_refits += 1
 
-    def _hypers_outgrown(self) -> bool:
+    def _outgrown(self) -> bool:
         """Tell whether the buffer has at least doubled since the hyper-parameters were learned."""
-        return 0 < self._opt_n and self._buf.size >= 2 * self._opt_n
+        return 0 < self._opt_n and self._window.size >= 2 * self._opt_n
 
-    def _next_job(self, stamp: float, idle: bool = False) -> Optional[RefitJob]:
+    def next_job(self, stamp: float, last_t: Optional[float],
+                 idle: bool = False) -> Optional[RefitJob]:
         """
         Make the one decision (under the lock) of what the worker does next, if anything.
 
+        ``stamp``: the learning time now; ``last_t``: the newest sample's (the job's stamp).
         ``idle``: the stream paused (``Learner.poll``): a stale model not tried since it last
         changed is re-proven without waiting for the re-proof period.
         """
-        cfg = self.config
-        if not cfg.learning:
-            return self._freeze_job()           # serve only: nothing else (``switch``)
-        if self._buf is None or self._buf.size < cfg.min_samples or self.refit_running():
+        cfg, served, h = self._settings(), self._served, self._health
+        if self._window.buffer is None or self._window.size < cfg.min_samples or self.running():
             return None
-        if self._model is not None and self._clock is None:
+        model = served.model
+        if model is not None and self._clock is None:
             self._clock = stamp                          # loaded model: start the refit clock
         if self._clock is not None and cfg.refit_period_s > 0 and \
                 stamp - self._clock > self.CLOCK_JUMP_PERIODS * cfg.refit_period_s:
             self._clock = stamp            # a jump forward (a bag loop, a bad stamp): no refit
-            self.health.time_jumps_forward += 1
-        due = (self._refit_requested
-               or (self._model is None and self._clock is None)                # first fit
+            h.time_jumps_forward += 1
+        due = (self._requested
+               or (model is None and self._clock is None)                      # first fit
                or (cfg.refit_period_s > 0 and self._clock is not None and
                    stamp - self._clock >= cfg.refit_period_s)                 # periodic
-               or (self._model is not None and self._hypers_outgrown() and
-                   self.health.consecutive_refit_failures == 0)               # buffer doubled
-               or (self._retry_at is not None and self._seq >= self._retry_at)   # rejected
-               or (self._novel and self._model is not None))                  # new territory
+               or (model is not None and self._outgrown() and
+                   h.consecutive_refit_failures == 0)                         # buffer doubled
+               or (self._retry_at is not None and self._window.seq >= self._retry_at)
+               or (self._novel and model is not None))                        # new territory
         if due:
-            self._refit_requested = False
+            self._requested = False
             self._retry_at = None
             self._clock = stamp
-            return self._fit_job()
-        if cfg.refit_mode != 'sync' and self._model is not None and \
-                self._model.certificate().stale:
+            return self._fit_job(last_t)
+        if cfg.refit_mode != 'sync' and model is not None and model.certificate().stale:
             # a stale model stays passive pointwise: re-prove at most every refit_period_s / 4
             # (longer after failed proofs), beside the answers; in line the proof comes with the
             # refits only (it would hold up the replay and be stale at the next sample)
-            gap = self._proof_gap(cfg.refit_period_s / 4.0 if cfg.refit_period_s > 0 else 0.25)
+            gap = self.proof_gap(cfg.refit_period_s / 4.0 if cfg.refit_period_s > 0 else 0.25)
             last = self._last_recert
             if last is None or stamp < last or stamp - last >= gap or \
-                    (idle and self._model_seq != self._recert_seq):
-                self._last_recert, self._recert_seq = stamp, self._model_seq
-                return RefitJob('recertify', dataclasses.replace(cfg), self._model_seq,
-                                self._generation, self._last_t,
-                                model=copy.deepcopy(self._model), source=self._model,
-                                target_gen=self._model_gen)
+                    (idle and served.held != self._recert_seq):
+                self._last_recert, self._recert_seq = stamp, served.held
+                return self.recertify_job(last_t)
         return None
 
-    def _fit_job(self) -> RefitJob:
-        h, cfg = self.health, self.config
+    def recertify_job(self, last_t: Optional[float], config=None,
+                      full: bool = False) -> RefitJob:
+        """
+        Return a job that re-proves a copy of the served model (under the lock).
+
+        config : the job's configuration (default: a copy of the current one); full : the
+        full proof (``switch``).
+        """
+        served = self._served
+        cfg = dataclasses.replace(self._settings()) if config is None else config
+        return RefitJob('recertify', cfg, served.held, self._generation, last_t,
+                        model=copy.deepcopy(served.model), source=served.model,
+                        target_gen=served.gen, full=full)
+
+    def _fit_job(self, last_t: Optional[float]) -> RefitJob:
+        h, cfg, win, st = self._health, self._settings(), self._window, self._structure
         h.refits_started += 1
         k = h.refits_started
-        optimize = (self._model is None or self._hyper is None or
+        optimize = (self._served.model is None or self._hyper is None or
                     (cfg.optimize_every_n_refits > 0 and k % cfg.optimize_every_n_refits == 0)
-                    or self._hypers_outgrown() or self._novel)
+                    or self._outgrown() or self._novel)
         self._novel = False
-        if self.auto:
-            self._reselect()            # prior='auto': structure and correction on the history
-        Q, T = self._buf.arrays()
+        if st.auto:
+            st.reselect(win)            # prior='auto': structure and correction on the history
+        Q, T = win.arrays()
         if optimize and Q.shape[0]:
             self._hyper_box = (Q.min(axis=0), Q.max(axis=0))
         # re-learning on data like the last optimum's refines it (no restarts); after the buffer
         # doubled the data changed enough to search again from scratch
-        warm = self._hyper is not None and not self._hypers_outgrown()
+        warm = self._hyper is not None and not self._outgrown()
         # the served model as it is now: the candidate's opponent on the samples that arrive
         # during its fit (appended to the served one meanwhile; a snapshot keeps this state)
-        base = None if self._model is None else self._model.snapshot(variance=False)
-        return RefitJob('fit', dataclasses.replace(cfg), self._seq, self._generation,
-                        self._last_t, Q=Q, T=T, optimize=optimize,
-                        hyper=self._with_prior(self._hyper),
-                        warm=warm, kw=self._model_kw(cfg), correction=self._correction(),
-                        target_gen=self._target_gen, source=base)
+        model = self._served.model
+        base = None if model is None else model.snapshot(variance=False)
+        return RefitJob('fit', dataclasses.replace(cfg), win.seq, self._generation, last_t,
+                        Q=Q, T=T, optimize=optimize, hyper=st.with_prior(self._hyper),
+                        warm=warm, kw=st.model_kw(cfg), correction=st.correction(),
+                        target_gen=win.target_gen, source=base)
 
-    def request_refit(self) -> Tuple[bool, str]:
-        """Refit now (async: start it in the background). Returns (ok, message)."""
-        with self._lock:
-            if not self.config.learning:
-                return False, 'learning is off (parameter learning): the model is frozen'
-            if self._buf is None or self._buf.size < self.config.min_samples:
-                n = 0 if self._buf is None else self._buf.size
-                return False, f'not enough samples ({n} < min_samples {self.config.min_samples})'
-            if self.refit_running():
-                return False, 'a refit is already running'
-            if self._last_t is not None:
-                self._clock = self._last_t
-            job = self._fit_job()
-        return self._start(job)
+    def request(self, last_t: Optional[float]) -> Tuple[Optional[RefitJob], str]:
+        """Return the refit asked for now, or (None, why not) (under the lock)."""
+        cfg = self._settings()
+        if not cfg.learning:
+            return None, 'learning is off (parameter learning): the model is frozen'
+        if self._window.size < cfg.min_samples:
+            return None, f'not enough samples ({self._window.size} < min_samples ' \
+                f'{cfg.min_samples})'
+        if self.running():
+            return None, 'a refit is already running'
+        if last_t is not None:
+            self._clock = last_t
+        return self._fit_job(last_t), ''
 
     # ------------------------------------------------------------------ running
-    def _start(self, job: RefitJob) -> Tuple[bool, str]:
+    def start(self, job: RefitJob) -> Tuple[bool, str]:
+        """Run ``job``: in the job thread (``async``), else in line; (ok, message)."""
         what = (f'{job.kind} started' if job.kind != 'fit' else
                 f'refit started on {job.Q.shape[0]} samples '
                 f'({"optimizing" if job.optimize else "fixed"} hyper-parameters)')
         with self._lock:
-            if self.refit_running():
+            if self.running():
                 return False, 'a refit is already running'
             self._pending.clear()
             if job.config.refit_mode == 'async':
-                self._thread = threading.Thread(target=self._run, args=(job,),
+                self._thread = threading.Thread(target=self.run, args=(job,),
                                                 name='dgp_refit', daemon=True)
                 self._thread.start()
                 return True, what
             self._thread = None
-        return self._run(job)
+        return self.run(job)
 
-    def _run(self, job: RefitJob) -> Tuple[bool, str]:
+    def run(self, job: RefitJob) -> Tuple[bool, str]:
+        """Run ``job`` here; a freeze wanted meanwhile (learning switched off) follows it."""
+        if job.kind == 'freeze':
+            return self._freeze(job)
+        out = self._integrate(run_job(job, self._factory))
+        follow = self._freeze_due()     # switched off while this job ran (and discarded it)
+        return self._freeze(follow) if follow is not None else out
+
+    def prove_now(self, job: RefitJob) -> Tuple[bool, str]:
+        """Run a re-proof job here, with no freeze after it (the freeze's own proof)."""
         return self._integrate(run_job(job, self._factory))
 
     def _integrate(self, res: RefitResult) -> Tuple[bool, str]:
@@ -193,12 +323,12 @@ class JobRunner:
         Finish a job: held-out check, catch-up, swap, record (module docstring).
 
         A fitted candidate that passes the held-out check is refitted at its new
-        hyper-parameters on the buffer as it is now (the samples that arrived during its fit
+        hyper-parameters on the window as it is now (the samples that arrived during its fit
         included) and swapped in; a re-proven model is swapped in if the served model is still
         the one it was copied from, with the samples appended to that one meanwhile.
         """
         job, model, ok, why, proof = res.job, res.model, res.ok, res.reason, res.proof
-        cfg, h = job.config, self.health
+        cfg, h, win = job.config, self._health, self._window
         t0 = time.perf_counter() - res.seconds
         seq, gen = job.seq, job.target_gen
         try:
@@ -208,10 +338,10 @@ class JobRunner:
                     h.refits_rejected += 1
             if ok and job.kind == 'fit':
                 with self._lock:
-                    newer = self._seq != job.seq or self._target_gen != job.target_gen
-                    Q, T = self._buf.arrays() if newer else (None, None)
-                    correction = self._correction()
-                    seq, gen = self._seq, self._target_gen
+                    newer = win.seq != job.seq or win.target_gen != job.target_gen
+                    Q, T = win.arrays() if newer else (None, None)
+                    correction = self._structure.correction()
+                    seq, gen = win.seq, win.target_gen
                 if newer:
                     model.fit(Q, T, optimize=False)
                     model.correction_ = correction
@@ -233,12 +363,12 @@ class JobRunner:
                 h.refits_rejected += 1
             if ok:
                 self._retry_at = None
-            elif self._model is None or h.consecutive_refit_failures < self.MAX_RETRIES:
+            elif self._served.model is None or h.consecutive_refit_failures < self.MAX_RETRIES:
                 # a rejected candidate is retried once fresh samples arrived (it learns from
                 # the ones it failed on), not only at the next refit period; a short bag, or
                 # refit_period_s = 0, would otherwise keep the first model (or, before any, the
                 # prior) for good
-                self._retry_at = self._seq + max(10, cfg.buffer_size // 4) * \
+                self._retry_at = win.seq + max(10, cfg.buffer_size // 4) * \
                     2 ** min(h.consecutive_refit_failures, 6)          # backing off
             h.refit_done(ok, dt, job.stamp, job.optimize,
                          '' if ok else (why if model is None else f'not swapped in: {why}'),
@@ -246,7 +376,7 @@ class JobRunner:
             error = h.last_refit_error
         if ok and cfg.model_path:
             try:
-                self.save(cfg.model_path)
+                self._save(cfg.model_path)
             except Exception as exc:
                 with self._lock:
                     h.last_refit_error = f'refit ok but saving failed: {exc}'
@@ -261,23 +391,21 @@ class JobRunner:
         replaces it otherwise); the samples appended to that one since are appended to the copy
         (its certificate then goes stale again, its repairs stay).
         """
-        h = self.health
+        h, served = self._health, self._served
         if not ok:
             h.last_refit_error = f'recertification failed: {why}'
             return False, h.last_refit_error
-        if self._model is not job.source:
+        if served.model is not job.source:
             return False, 'recertified, but a newer model serves'
-        if self._model_seq != job.seq:
-            rows = [r for r in self._rows if job.seq < r[0] <= self._model_seq]
-            if len(rows) != self._model_seq - job.seq or \
-                    any(r[1] != job.target_gen for r in rows):
+        if served.held != job.seq:
+            rows = self._window.rows_between(job.seq, served.held)
+            if len(rows) != served.held - job.seq or any(r[1] != job.target_gen for r in rows):
                 return False, 'recertified, but the model moved on'
             try:
                 model.update(np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
             except Exception as exc:    # noqa: BLE001 - the served model stays
                 return False, f'recertified, but catching up failed: {exc}'
-        self._model = model
-        self._version += 1
+        served.replace(model)
         h.recertifications += int(not proof)
         if proof:
             h.last_refit_error = f'recertification failed: {proof}'
@@ -286,14 +414,13 @@ class JobRunner:
 
     def _held_out(self, model, base, seq: int) -> Tuple[bool, str, int]:
         """
-        Compare the candidate with the served model and its own parametric part on new samples.
+        Compare the candidate with ``base`` and its parametric part on the samples that arrived.
 
-        These are the samples that arrived while the candidate was fitted (none in sync mode,
-        where the elements' cross-validation alone holds a GP against the parametric part):
-        the candidate, ``base`` (the served model when the fit started: a snapshot, the served
-        one has appended them since) and the candidate's prior mean each predict them without
-        having learned them.
-        Returns (ok, reason, seq of the last of them).
+        ``base``: the served model when the fit started (a snapshot; the served one has
+        appended them since). The samples that arrived while the candidate was fitted (none in
+        line, where the elements' cross-validation alone holds a GP against the parametric
+        part), the first ``HELD_OUT_EVERY``, then as many spread over the rest
+        (``worker.held_out``). Returns (ok, reason, seq of the last of them).
         """
         with self._lock:
             newer = [(s, q, t) for (s, q, t) in self._pending if s > seq]
@@ -303,48 +430,25 @@ class JobRunner:
         if len(newer) > 2 * k:          # the first k, then k spread over the rest
             rest = newer[k:]
             newer = newer[:k] + [rest[i] for i in np.linspace(0, len(rest) - 1, k).astype(int)]
-        try:
-            Qn = np.array([q for _, q, _ in newer])
-            T = np.array([t for _, _, t in newer])
-            e_new = model.predict(Qn) - T
-            e_old = base.predict(Qn) - T
-            e_par = model.mean_.force(Qn) - T if model.posterior_.structure.has_damping \
-                else e_old
-            seq = newer[-1][0]
-        except Exception as exc:          # noqa: BLE001 - a broken candidate is caught later
-            return True, f'held-out check skipped: {exc}', seq
-        T = np.array(T)
-        e_new = float(np.mean(np.square(e_new)))
-        e_old = float(np.mean(np.square(e_old)))
-        e_par = float(np.mean(np.square(e_par)))
-        # a candidate within 1 % of the samples' variance is good enough, however good the
-        # incumbent happens to be on them
-        floor = float(np.mean(np.var(T, axis=0))) * 1e-2
-        for e_ref, whose in ((e_old, "the current model's"), (e_par, "its parametric part's")):
-            if e_new > self.HELD_OUT_FACTOR * e_ref + floor:
-                return False, (f'sanity check: error on the {len(T)} samples that arrived '
-                               f'during the fit {e_new / max(e_ref, 1e-300):.1f} x {whose}'), seq
-        return True, '', seq
+        ok, why = held_out(model, base, np.array([q for _, q, _ in newer]),
+                           np.array([t for _, _, t in newer]), self.HELD_OUT_FACTOR)
+        return ok, why, newer[-1][0]
 
     def _swap(self, job: RefitJob, model, seq: int, gen: int) -> None:
         """Install a fitted candidate that holds the samples up to ``seq`` (under the lock)."""
-        self._based(model, seq, gen)
+        self._served.based(model, seq, gen)
         self._hyper = model.hyperparams_
         if job.optimize:
             self._opt_n = job.Q.shape[0]
             picked = getattr(model, 'fit_info_', {}).get('elements')
             if picked:
-                self.health.elements = choice_summary(picked['choices'])
-                self.health.elements_scores = {c: [round(v, 4) for v in e]
-                                               for c, e in picked['heldout'].items()}
+                self._health.elements = choice_summary(picked['choices'])
+                self._health.elements_scores = {c: [round(v, 4) for v in e]
+                                                for c, e in picked['heldout'].items()}
 
-    def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
-        """Block until no refit is running; True if none is running at return."""
+    def wait(self, timeout: Optional[float] = None) -> bool:
+        """Block until no job is running; True if none is running at return."""
         t = self._thread
         if t is not None:
             t.join(timeout)
-        return not self.refit_running()
-
-    def close(self, timeout: float = 30.0) -> None:
-        """Wait (bounded) for a running refit to finish; call before exit."""
-        self.wait_for_refit(timeout)
+        return not self.running()

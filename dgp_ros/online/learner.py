@@ -2,26 +2,22 @@
 The learner: everything the online estimator learns, and nothing it answers (no rclpy).
 
 A :class:`Learner` takes validated measurements in learning time (``learn``), turns them into
-learning samples (the friction residual front end of ``dynamics`` when there is inverse
-dynamics), decides which to keep (``selection``), updates the model, runs refit and re-proof
-jobs (``worker``; their integration is ``jobs``) and publishes what a prediction needs as an
-immutable :class:`~dgp_ros.online.snapshot.Snapshot`. The message path
-(:class:`~dgp_ros.online.estimator.OnlineEstimator`) answers from the newest snapshot and never
-waits for the learner; in the node the learner lives in a child process
+learning samples, decides which to keep, updates the model, runs refit and re-proof jobs and
+publishes what a prediction needs as an immutable :class:`~dgp_ros.online.snapshot.Snapshot`.
+The message path (:class:`~dgp_ros.online.estimator.OnlineEstimator`) answers from the newest
+snapshot and never waits for the learner; in the node the learner lives in a child process
 (:mod:`dgp_ros.online.process`), in replay and tests in line (``refit_mode='sync'``).
 
-Refits: the first as soon as ``min_samples`` are buffered; then every ``refit_period_s`` of
-learning time, on ``request_refit()``, and whenever the buffer has doubled since the
-hyper-parameters were learned (20 -> 40 -> 80 ... while it fills; a first optimum learned on a
-few samples of a near-stationary start can be far off). Refit number k re-learns the
-hyper-parameters when ``k % optimize_every_n_refits == 0``, on the first fit and after a
-doubling; otherwise it refits at the current ones. A stale certificate (``certified`` mode, after
-updates) is re-proven by a 'recertify' job, at most every ``refit_period_s / 4``.
+It is composed of parts, each a class that owns its state: ``front``, ``window``,
+``structure``, ``grounds``, ``served``, ``refits``, ``rebases``, ``switch``, ``snapshots``,
+``files`` (docs/ARCHITECTURE.md, "The learner's parts": what each owns, the path of a message
+and of a refit through them). A part calls another only through its public methods; the learner
+makes them, passes each what it needs, and makes them anew on a reset. It owns the one lock that
+guards them all, and hands it to the parts whose work runs in threads of its own; the lock is
+never held while a model is fitted or proven.
 """
 from __future__ import annotations
 
-from collections import deque
-import copy
 import dataclasses
 import os
 import threading
@@ -29,20 +25,22 @@ from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 
-from dgp_ros.dynamics import AccelFilter, FrictionResidual, make_inverse_dynamics
+from dgp_ros.dynamics import make_inverse_dynamics
 from dgp_ros.gp import load_model, make_model
-from dgp_ros.gp.means import make_mean
 
-from .absorb import Absorber
-from .config import check_model_path, EstimatorConfig
-from .grounds import SkillMixin
-from .health import LearnerHealth, LearnerReport, POWER_WINDOW
-from .jobs import JobRunner
-from .selection import Buffer, Selector
-from .snapshot import Snapshot
-from .structure import StructureMixin
-from .switch import LearningSwitch
-from .worker import prove
+from .absorb import Rebases
+from .config import EstimatorConfig
+from .files import ModelFiles
+from .front import Front
+from .grounds import Grounds
+from .health import LearnerHealth
+from .jobs import Refits
+from .report import learner_status
+from .served import Served
+from .snapshot import Snapshot, Snapshots
+from .structure import Structure
+from .switch import Switch
+from .window import Window
 
 __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
 
@@ -54,7 +52,7 @@ STRUCTURAL = ('model', 'passivity', 'elements', 'prior', 'bias', 'buffer_size', 
 FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints')
 
 
-class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, LearnerReport):
+class Learner:
     """
     Online learning of a D-GP from a stream of measurements (module docstring).
 
@@ -68,9 +66,8 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
 
     """
 
-    #: samples arriving during a refit on which its held-out check compares the models: the
-    #: first this many, then evenly spread ones up to twice as many
-    HELD_OUT_EVERY = 20
+    #: append each sample in ``learn`` (in line); the learner process appends per round instead
+    append_each = True
 
     def __init__(self, config: Optional[EstimatorConfig] = None,
                  model_factory: Optional[Callable] = None,
@@ -79,67 +76,57 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
         self._factory = model_factory or make_model
         self._loader = model_loader or load_model
         self._lock = threading.RLock()
-        self._thread: Optional[threading.Thread] = None
-        self._absorber: Optional[threading.Thread] = None
-        self._absorb_wanted = threading.Event()
-        self._generation = 0
         self.load_error = ''
         self._inverse = _inverse_dynamics(self.config)
-        self._init_state()
+        self._names_hint: Optional[List[str]] = None
+        self.health = LearnerHealth()
+        self.refits = None
+        self._init_state(keep_health=True)
         path = self.config.model_path
         if path and os.path.exists(path):
             self._load(path)
 
-    # ------------------------------------------------------------------ state
+    # ------------------------------------------------------------------ the parts
     def _init_state(self, keep_health: bool = False) -> None:
-        self._generation += 1
-        names = list(self.config.joints) or list(getattr(self._inverse, 'joint_names', []))
-        self._N: Optional[int] = len(names) or None
-        self._front = FrictionResidual(
-            self._inverse, AccelFilter(self.config.accel_half_window_s)
-            if self._inverse is not None else None)
-        self._learned_power: deque = deque(maxlen=POWER_WINDOW)
-        self._buf: Optional[Buffer] = None
-        self._history = None               # long history of prior='auto' (structure.py)
-        self._param = None
-        self._rmax = None                  # largest |residual| learned per joint (structure.py)
-        self._selector = Selector()
-        self._skill = None                # one-step skill of model and prior (grounds.py)
-        self._gains_seq = getattr(self, '_gains_seq', 0) + 1   # gains_seq (grounds.py)
-        self._seq = 0                     # samples ever added (orders the catch-up)
-        self._reset_absorber(self.config.buffer_size)
-        # (seq, qd, tau, answer before learning) added while a refit runs; only the newest
-        # buffer_size can survive the model's window, so older ones are dropped here
-        self._pending: deque = deque(maxlen=self.config.buffer_size)
-        self._model = None
-        self._hyper: Optional[dict] = None   # warm start of the next fit (hyperparams_)
-        self._opt_n = 0                   # samples the current hyper-parameters were learned on
-        self._hyper_box = None            # their velocity box (jobs.JobRunner._note_novelty)
-        self._novel, self._novel_t = False, None
-        self._prior = None                # fitted prior of the buffer (lazy): (mean, std, seq)
-        self._last_t: Optional[float] = None
-        self._last_added_t: Optional[float] = None
-        self._recent_q: deque = deque(maxlen=100)       # recent candidates (stall check)
-        self._clock: Optional[float] = None   # learning time of the last refit decision
-        self._last_recert: Optional[float] = None
-        self._refit_requested = False
-        self._retry_at: Optional[int] = None  # _seq at which a rejected candidate is retried
-        # bumped whenever what a snapshot holds changes; increasing across resets
-        self._version = getattr(self, '_version', 0) + 1
-        self._snap: Optional[Snapshot] = None
-        self._snap_gains = -1             # the gains_seq self._snap carries
-        self._reset_switch()
+        """Make the parts anew (a reset); what runs in the old ones is discarded."""
+        cfg, old = self.config, self.refits
+        if old is not None:
+            old.discard()
         if not keep_health:
             self.health = LearnerHealth()
+        h, lock = self.health, self._lock
+        names = list(cfg.joints) or list(getattr(self._inverse, 'joint_names', []))
+        self._N: Optional[int] = len(names) or None
+        self.front = Front(cfg, self._inverse)
+        self._last_t: Optional[float] = None
+        self.window = Window(cfg.buffer_size, cfg.buffer_policy)
+        self.structure = Structure(cfg, self._inverse, h)
+        # the counts a snapshot is recognized by keep increasing across resets
+        self.grounds = Grounds(1 if old is None else self.grounds.seq + 1)
+        self.served = Served(1 if old is None else self.served.version + 1)
+        self.refits = Refits(lock, self._settings, self.window, self.structure, self.served, h,
+                             self._factory, self.save, 1 if old is None else old.generation)
+        self.rebases = Rebases(lock, self._settings, self.window, self.structure, self.served,
+                               self.refits, h, self._factory)
+        self.switch = Switch(lock, self._settings, self.window, self.structure, self.served,
+                             self.rebases, self.refits, h, self.save, lambda: self._last_t)
+        self.snapshots = Snapshots(self._settings, self.window, self.structure, self.grounds,
+                                   self.served)
+        self.files = ModelFiles(lock, self._settings, self.window, self.structure, self.grounds,
+                                self.served, self.rebases, self.refits, self.switch, h)
 
+    def _settings(self) -> EstimatorConfig:
+        return self.config
+
+    # ------------------------------------------------------------------ state
     @property
     def trained(self) -> bool:
-        return self._model is not None
+        return self.served.model is not None
 
     @property
     def model(self):
         """Get the current model, None before the first fit (do not mutate it)."""
-        return self._model
+        return self.served.model
 
     @property
     def N(self) -> Optional[int]:
@@ -148,28 +135,62 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
     @property
     def version(self) -> int:
         """Return a number that changes whenever the next snapshot would differ."""
-        return self._version
+        return self.served.version
+
+    @property
+    def gains_seq(self) -> int:
+        """Return a number that changes whenever the gains do (every scored sample)."""
+        return self.grounds.seq
+
+    @property
+    def unheld(self) -> int:
+        """Learned samples the model does not hold yet."""
+        return self.served.unheld(self.window.seq)
+
+    @property
+    def last_t(self) -> Optional[float]:
+        """Return the learning time of the newest sample (s), None before any."""
+        return self._last_t
+
+    @property
+    def learning_state(self) -> str:
+        """Return 'on', 'stopping' (the model being proven and saved) or 'off'."""
+        return self.switch.state(self.config.learning)
+
+    @property
+    def inverse(self):
+        """Return the rigid-body model (None without one)."""
+        return self._inverse
 
     def samples(self) -> Tuple[np.ndarray, np.ndarray]:
         """Return copies of the buffered samples, (Qd, Tau), (n, N) each, oldest first."""
         with self._lock:
-            if self._buf is None:
+            if self.window.buffer is None:
                 return np.zeros((0, self._N or 0)), np.zeros((0, self._N or 0))
-            return self._buf.arrays()
+            return self.window.arrays()
 
     def refit_running(self) -> bool:
-        t = self._thread
-        return t is not None and t.is_alive()
+        return self.refits.running()
 
     # the rest of the interface the message path uses (``process.LearnerProcess`` has it too)
     def joint_names(self) -> List[str]:
         """Joint names the learner selects (``joints``, else the URDF's; [] = message order)."""
         return list(self.config.joints) or list(getattr(self._inverse, 'joint_names', []))
 
+    def structure_names(self) -> List[str]:
+        """Joint names for the structure and the report (``joint_names``, else the stream's)."""
+        return self.joint_names() or list(self._names_hint or [])
+
     @property
     def needs_position(self) -> bool:
         """Tell whether the learner uses joint positions (inverse dynamics)."""
         return bool(self.config.inverse_dynamics)
+
+    def set_joint_names(self, names) -> None:
+        """Take the stream's joint names (they may name a known robot: its URDF kinematics)."""
+        with self._lock:
+            if not self._names_hint and names:
+                self._names_hint = [str(n) for n in names]
 
     def set_variance(self, on: bool) -> None:
         """In line the live model always has its factors: nothing to do."""
@@ -199,24 +220,27 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
         with self._lock:
             if self._N is None:
                 self._N = qd.size
-            if self._buf is None:
-                self._buf = Buffer(self.config.buffer_size, self._N, self.config.buffer_policy)
+            self.window.ensure(self._N)
             if self._last_t is not None and t < self._last_t:
                 # documented policy: keep model and buffer, restart the refit clock, count it
                 self.health.time_jumps_back += 1
-                if self._clock is not None:
-                    self._clock = t
+                self.refits.jumped_back(t)
             self._last_t = t
             added, residuals = self._learn(t, qd, tau, q)
             if self.append_each:
                 self.catch_up()
             job = self._next_job(t)
-            absorb = job is None and self._absorb_due()
+            absorb = job is None and self.rebases.due()
         if job is not None:
-            self._start(job)
+            self.refits.start(job)
         elif absorb:
-            self._absorb_soon()
+            self.rebases.soon()
         return added, residuals
+
+    def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray, q=None) -> int:
+        """``learn`` for k samples in order (t (k,), qd and tau (k, N)); how many were taken."""
+        return sum(int(self.learn(float(t[j]), qd[j], tau[j], None if q is None else q[j])[0])
+                   for j in range(len(t)))
 
     def poll(self, idle: bool = False) -> None:
         """
@@ -227,137 +251,124 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
         resumes.
         """
         with self._lock:
-            if self._last_t is None and not self._freeze_wanted:
+            if self._last_t is None and not self.switch.wanted:
                 return
             job = self._next_job(self._last_t, idle)
-            absorb = job is None and self._absorb_due()
+            absorb = job is None and self.rebases.due()
         if job is not None:
-            self._start(job)
+            self.refits.start(job)
         elif absorb:
-            self._absorb_soon()
+            self.rebases.soon()
+
+    def _next_job(self, stamp, idle: bool = False):
+        """Return the job due now (under the lock): the freeze with learning off, else a refit."""
+        if not self.config.learning:
+            return self.switch.job()            # serve only: nothing else (``switch``)
+        return self.refits.next_job(stamp, self._last_t, idle)
 
     def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q) -> Tuple[bool, list]:
-        """Offer the sample for learning (rate limit; the residual front end if any)."""
-        h, sel = self.health, self._selector
-        if self.config.awaits_urdf:             # no rigid-body model yet: nothing to learn
-            h.samples_awaiting_model += 1
-            return False, []
-        want = not sel.rate_limited(self.config, stamp)
-        if want:
-            sel.added(stamp)
-        else:
-            h.samples_rate_limited += 1
+        """Offer the sample for learning (``front``); learn what it gives; (taken, residuals)."""
+        want, done, take = self.front.offer(self.config, self.health, stamp, qd, tau, q)
         if self._inverse is None:
-            return (self._add(stamp, qd, tau, q) if want else False), []
-        try:
-            done = self._front.push(stamp, q, qd, tau, want=want)
-        except Exception as exc:        # a plugin that fails: the message is still answered
-            h.last_refit_error = f'inverse dynamics failed: {type(exc).__name__}: {exc}'
-            h.inverse_dynamics_errors += 1
-            return False, []
-        for r in done:
-            if np.all(np.isfinite(r.residual)):
-                self._add(r.stamp_s, r.qd, r.residual, r.q, r.qdd)
+            return (self._add(*take[0]) if take else False), []
+        for sample in take:
+            self._add(*sample)
         return want, done
 
     def _add(self, stamp: float, qd: np.ndarray, residual: np.ndarray, q=None,
              qdd=None) -> bool:
         """
-        Learn one sample: the long history always, the buffer unless it is a near-duplicate.
+        Learn one sample: the long history always, the window unless it is a near-duplicate.
 
         residual (N,): what the damping and (``prior='auto'``) the correction explain; the
-        buffer keeps it minus the current correction (``structure``).
+        window keeps it minus the current correction (``structure``). Before it is learned the
+        sample scores the served model and its parametric part (``grounds``): one step ahead.
         """
-        h = self.health
+        h, win, st = self.health, self.window, self.structure
         if not self.config.learning:            # serve only (``switch``)
             h.samples_not_learned += 1
             return False
-        self._learned_power.append(float(qd @ residual))
-        self._recent_q.append(qd)
-        if self._selector.outlier(self.config, self._buf, qd, residual):
+        win.offered(qd, residual)
+        if win.outlier(self.config, qd, residual):
             h.samples_outliers += 1
             return False
-        prior = self._skill_prior()             # the prior before this sample (one step ahead)
-        yt = self._history_push(stamp, q, qd, qdd, residual)
-        target = self._target(residual, yt)
-        self._note_novelty(stamp, qd, self._note_skill(stamp, qd, target, prior, residual, q))
-        if not self._selector.novel(self.config, self._buf, qd):
+        # the prior the answers came from before this sample (one step ahead)
+        prior = st.answering(win, self._N, self.served.model)
+        yt = st.push(stamp, q, qd, qdd, residual, self._N, self.structure_names())
+        target = st.target(residual, yt)
+        surprise = self.grounds.note(stamp, qd, target, prior, residual, q, self.served.model)
+        self.refits.note_novelty(stamp, qd, surprise)
+        if not win.novel(self.config, qd):
             h.samples_skipped += 1
             return False
-        self._last_added_t = stamp
-        self._buf.append(qd, target, (residual, yt) if self.auto else None)
-        self._selector.additions += 1
-        self._seq += 1
-        self._rows.append((self._seq, self._target_gen, qd, target))
-        if self._model is None:
-            self._version += 1                  # the prior the answers come from may change
+        seq = win.add(stamp, qd, target, (residual, yt) if st.auto else None)
+        if self.served.model is None:
+            self.served.touch()                 # the prior the answers come from may change
         h.samples_added += 1
-        if self.refit_running():
-            # the samples a running refit's candidate has not seen: its held-out check
-            # (jobs.JobRunner._held_out)
-            self._pending.append((self._seq, qd.copy(), target.copy()))
+        # the samples a running refit's candidate has not seen: its held-out check
+        self.refits.note_sample(seq, qd, target)
         return True
 
-    # ------------------------------------------------------------------ snapshots
-    def _fitted_prior(self):
-        """(mean, std): the passive prior fitted to the buffer, refitted per tenth of it."""
-        # a 7-joint friction prior costs ~15 ms: refitted on every learned sample it held the
-        # answers while the first fit ran
-        auto = self._auto_prior()
-        if auto is not None:
-            return auto
-        if self._prior is None or self._seq >= self._prior[2] + max(1, self._prior[2] // 10):
-            N = self._N
-            Q, T = self._buf.arrays() if self._buf is not None and self._buf.size else \
-                (np.zeros((0, N)), np.zeros((0, N)))
-            cfg = self.config
-            prior = 'viscous' if cfg.model == 'ard' or cfg.prior == 'auto' else cfg.prior
-            try:
-                mean = make_mean(prior, 'full', bool(cfg.bias)).fit(Q, T)
-                resid = T - mean(Q) if Q.shape[0] else T
-                std = np.sqrt(np.mean(resid ** 2, axis=0)) if Q.shape[0] else np.zeros(N)
-            except Exception:           # degenerate buffer: no prior damping at all
-                mean, std = make_mean('viscous', 'full').fit(Q[:0], T[:0]), np.zeros(N)
-            self._prior = (mean, std, self._seq)
-        return self._prior[0], self._prior[1]
-
-    def snapshot(self, variance: bool = True, frozen: bool = False) -> Optional[Snapshot]:
-        """
-        Return what a prediction needs now (None before the first sample).
-
-        variance : include what the posterior variance needs (the Cholesky factors).
-        frozen : a self-contained copy for another process (``process``); else the snapshot
-            refers to the live model (in-line use: the caller learns and answers in turn).
-        """
+    def catch_up(self) -> int:
+        """Append every learned sample the model does not hold yet (``Served.catch_up``)."""
         with self._lock:
-            if self._N is None or self._buf is None:
-                return None
-            s = self._snap
-            if s is not None and s.version == self._version and \
-                    (s.frozen, s.variance) == (frozen, variance or not frozen):
-                self._snap = self._with_gains(s)       # the gains earned since, if any
-                return self._snap
-            mean, std = self._fitted_prior()
-            model = self._model
-            if model is not None and model.posterior_.structure.has_damping:
-                # a model answers with its own prior and bounds: the same after a reload
-                mean, bound = model.mean_, np.abs(model.Y_train_).max(axis=0)
-                Q = model.X_train_
-            else:
-                Q, T = self._buf.rows_unordered()
-                bound = np.abs(T).max(axis=0) if self._buf.size else np.zeros(self._N)
-            box = (Q.min(axis=0), Q.max(axis=0)) if len(Q) else None
-            per_joint = model is not None and model.posterior_.structure.has_damping and \
-                model.certificate().guarantee == 'psd'
-            if model is not None and frozen:
-                model = model.snapshot(variance=variance)
-            self._snap = self._with_gains(Snapshot(
-                version=self._version, model=model, prior=mean, prior_std=std,
-                force_bound=bound, velocity_box=box,
-                residual_bound=None if self._rmax is None else self._rmax.copy(),
-                learned_through=self._last_t, frozen=frozen, variance=variance or not frozen,
-                per_joint=per_joint))
-            return self._snap
+            return self.served.catch_up(self.window, self.health, self.config.buffer_size)
+
+    def catch_up_paused(self) -> None:
+        """
+        Append the samples the model does not hold yet, once the samples ran out.
+
+        A learner process that fell behind appends nothing while samples queue up (its rebases
+        take them in); when the stream pauses right after, nothing else would bring the last
+        ones to the model before it resumes. Cheap when there is nothing to do.
+        """
+        if self.unheld and not self.served.blocked:
+            self.catch_up()
+
+    # ------------------------------------------------------------------ snapshots
+    def snapshot(self, variance: bool = True, frozen: bool = False) -> Optional[Snapshot]:
+        """Return what a prediction needs now, None before the first sample (``Snapshots``)."""
+        with self._lock:
+            return self.snapshots.take(self._N, self._last_t, variance, frozen)
+
+    # ------------------------------------------------------------------ the gains
+    def skill_gains(self):
+        """Return (model weight, prior gain, confidence), (N,) each; Nones before any sample."""
+        return self.grounds.gains()
+
+    def restore_gains(self, model_weight, prior_gain, confidence, live=None) -> None:
+        """Start from the gains a previous learner earned (``Grounds.restore``)."""
+        with self._lock:
+            if self.grounds.restore(model_weight, prior_gain, confidence, live):
+                self.snapshots.forget()
+
+    def restore_residual_bound(self, bound) -> None:
+        """Take the largest |residual| per joint a previous learner saw (a restart), (N,)."""
+        with self._lock:
+            self.structure.restore_residual_bound(bound)
+            self.snapshots.forget()     # the next snapshot carries it
+
+    # ------------------------------------------------------------------ jobs
+    def request_refit(self) -> Tuple[bool, str]:
+        """Refit now (async: start it in the background). Returns (ok, message)."""
+        with self._lock:
+            job, why = self.refits.request(self._last_t)
+        if job is None:
+            return False, why
+        return self.refits.start(job)
+
+    def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
+        """Block until no refit is running; True if none is running at return."""
+        return self.refits.wait(timeout)
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Wait (bounded) for a running refit to finish; call before exit."""
+        self.refits.wait(timeout)
+
+    def status(self) -> dict:
+        """Return the learner's part of the diagnostics (``report``)."""
+        with self._lock:
+            return learner_status(self)
 
     # ------------------------------------------------------------------ housekeeping
     def reset(self) -> None:
@@ -380,9 +391,19 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
         A change of ``learning`` switches learning off (the model is proven and saved) or on
         (``switch``).
         """
-        switched = bool(config.learning) != bool(self.config.learning)
+        on = bool(config.learning)
+        switched = on != bool(self.config.learning)
         what = self._reconfigure(config)
-        return self._switch_note(what, bool(config.learning)) if switched else what
+        if not switched:
+            return what
+        if on:
+            return f'{what}; learning on'
+        self.switch.start()
+        with self._lock:
+            frozen = self.served.model is not None
+        note = ('learning off: the model is proven and saved (learning: stopping, then off)'
+                if frozen else 'learning off: no model yet, the prior serves')
+        return f'{what}; {note}'
 
     def _reconfigure(self, config: EstimatorConfig) -> str:
         config = dataclasses.replace(config).validate()
@@ -398,85 +419,43 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
             if bool(old.learning) != bool(config.learning):
                 self._learning_switched(bool(config.learning))
             changed = [f for f in STRUCTURAL if getattr(old, f) != getattr(config, f)]
-            self._version += 1
+            self.served.touch()
             if not changed:
                 return 'applied'
             if any(f in changed for f in FRONT_END):
                 # other joints, or another rigid-body model: what was learned no longer applies
                 self._init_state(keep_health=True)
                 return f'{", ".join(changed)} changed: estimator reset'
-            data = self._buf.arrays() if self._buf is not None and self._buf.size else None
+            win = self.window
+            data = win.arrays() if win.buffer is not None and win.size else None
             N = self._N
             self._init_state(keep_health=True)
             self._N = N
             if data is not None:
-                self._buf = Buffer.of(config.buffer_size, *data, policy=config.buffer_policy)
-                self._refit_requested = True
+                self.window.refill(*data)
+                self.refits.request_soon()
             return f'{", ".join(changed)} changed: model dropped, refit on the next sample'
 
-    def save(self, path: Optional[str] = None) -> str:
-        """
-        Save the current model atomically to ``path`` (default ``model_path``); returns it.
+    def _learning_switched(self, on: bool) -> None:
+        """Under the lock, after ``config.learning`` changed to ``on``."""
+        self.grounds.touch()                    # the snapshot's gains switch memory
+        if on:
+            self.switch.resume()
+            self.refits.resumed()               # the refit clock starts at the next sample
+            self.window.resumed(self._last_t)   # no 'stalled' warning for the pause
+            return
+        self.refits.discard()                   # a running refit or rebase is discarded
+        self.switch.stop(self.served.model is not None)
 
-        The model is copied under the lock and written outside it, once learning has stopped.
-        """
-        path = path or self.config.model_path
-        if not path:
-            raise ValueError('no path given and model_path is not set')
-        check_model_path(path)
-        self.wait_stopped()
-        with self._lock:
-            if self._model is None:
-                raise RuntimeError('no trained model to save yet')
-            model = copy.deepcopy(self._model)
-        if self._model is not None and self.config.learning and \
-                (self.unheld or self._history_grew()):
-            with self._lock:
-                self._reselect_now = True
-            self._absorb()          # the saved prior and correction see the whole history
-            with self._lock:
-                model = copy.deepcopy(self._model)
-        record = self.grounds_record()
-        if record is not None:      # restored with the model (``_load``)
-            model.grounds_ = record
-        path = os.path.abspath(path)
-        model.save(path)
-        return path
+    def save(self, path: Optional[str] = None) -> str:
+        """Save the served model atomically to ``path`` (default ``model_path``; ``files``)."""
+        return self.files.save(path)
 
     def adopt(self, model, source: str = '') -> None:
-        """
-        Serve ``model`` and buffer its training samples (a model file, a restarted learner).
-
-        Raises ValueError when it does not fit the configuration. Its certificate is proven
-        again (never trusted from the file); one that does not hold serves with every answer
-        projected, as a refit's would.
-        """
-        cfg = self.config
-        kind = model.posterior_.structure.kind
-        if kind != cfg.model:
-            raise ValueError(f'{source or "the"} model is a {kind!r} model, config model='
-                             f'{cfg.model!r}')
-        X, Y = model.X_train_, model.Y_train_
-        if cfg.joints and X.shape[1] != len(cfg.joints):
-            raise ValueError(f'{source or "the"} model has N={X.shape[1]}, joints has '
-                             f'{len(cfg.joints)}')
-        if cfg.passivity != 'none' and model.passivity != cfg.passivity:
-            raise ValueError(f'{source or "the"} model passivity {model.passivity!r} != '
-                             f'{cfg.passivity!r}')
-        model.posterior_ = model.posterior_.ensure_factors()    # a snapshot is predict-only
-        model.grounds_ = None       # the learner's gains blend its answers (restore_grounds)
-        proof = prove(model, cfg.passivity)           # re-proves: never trusts the file
+        """Serve ``model`` and buffer its training samples (``ModelFiles.adopt``)."""
+        N = self.files.adopt(model, source)
         with self._lock:
-            self.health.proof_done(proof)
-            self._N = X.shape[1]
-            self._buf = Buffer.of(cfg.buffer_size, X, Y, policy=cfg.buffer_policy)
-            self._seq = self._buf.size
-            self._reset_absorber(cfg.buffer_size)
-            self._based(model, self._seq, self._target_gen)
-            self._hyper = model.hyperparams_
-            self._opt_n = X.shape[0]
-            self._hyper_box = (X.min(axis=0), X.max(axis=0))
-            self._clock = None              # set by the first message
+            self._N = N
 
     def _load(self, path: str) -> None:
         try:
@@ -488,7 +467,7 @@ class Learner(StructureMixin, SkillMixin, Absorber, LearningSwitch, JobRunner, L
             return
         # a model file answers with the gains it was saved with (a file without them, at full
         # weight: the user gave it); one-step scores then move them as a learned model's
-        self.restore_grounds(g, model.X_train_.shape[1])
+        self.restore_gains(*Grounds.record_gains(g, model.X_train_.shape[1]))
 
 
 def _inverse_dynamics(config: EstimatorConfig):

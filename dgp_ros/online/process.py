@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from collections import deque
 import dataclasses
-import itertools
 import multiprocessing
 from multiprocessing.reduction import ForkingPickler
 import os
@@ -34,6 +33,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from .calls import Calls
 from .child import child_main, describe_exit, raise_reply, SCHED_CHOICES
 from .config import EstimatorConfig
 from .ring import SampleRing
@@ -94,11 +94,7 @@ class LearnerProcess:
         self.sched = sched
         self.prepare = prepare
         self.swaps = SwapLog()
-        self._lock = threading.Lock()
-        self._replies: dict = {}
-        self._callbacks: dict = {}          # id -> (done, deadline) of calls not waited for
-        self._reply_cv = threading.Condition(self._lock)
-        self._ids = itertools.count(1)
+        self.calls = Calls(self.REPLY_TIMEOUT_S)
         self._snap = None
         self._status: dict = {}
         self._residuals: deque = deque(maxlen=10000)
@@ -199,27 +195,14 @@ class LearnerProcess:
             elif kind == 'residuals':
                 self._residuals.extend(msg[1])
             elif kind == 'reply':
-                with self._reply_cv:
-                    cb = self._callbacks.pop(msg[1], None)
-                    if cb is None:
-                        self._replies[msg[1]] = (msg[2], msg[3])
-                        self._reply_cv.notify_all()
-                if cb is not None:
-                    cb[0]((msg[2], msg[3]))
+                self.calls.deliver(msg[1], msg[2], msg[3])
         proc.join(1.0)
         if self._closing or proc is not self._proc:
             return
         code = proc.exitcode
         self.exit_reason = (f'learner process died ({describe_exit(code)}); restarted from '
                             'the last snapshot')
-        with self._reply_cv:                 # nobody waits forever on a dead child
-            for i in list(self._replies):
-                if self._replies[i] is None:
-                    self._replies[i] = (False, 'the learner process died')
-            self._reply_cv.notify_all()
-            orphans, self._callbacks = list(self._callbacks.values()), {}
-        for done, _ in orphans:
-            done((False, 'the learner process died'))
+        self.calls.fail_all('the learner process died')
         while not self._closing:
             try:
                 snap = self._snap
@@ -243,52 +226,12 @@ class LearnerProcess:
             self.swaps.note(snap.version, received, time.perf_counter() - t0)
 
     def _call(self, kind: str, *args, timeout: Optional[float] = None):
-        """Send a command and wait for its reply: (ok, payload); (False, why) on a timeout."""
-        i = next(self._ids)
-        with self._reply_cv:
-            self._replies[i] = None
-        try:
-            self._cmd.send((kind, i) + args)
-        except (OSError, ValueError) as exc:
-            return False, f'the learner process is not reachable: {exc}'
-        deadline = time.monotonic() + (self.REPLY_TIMEOUT_S if timeout is None else timeout)
-        with self._reply_cv:
-            while self._replies.get(i) is None:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    self._replies.pop(i, None)
-                    return False, f'the learner did not answer {kind!r} in time'
-                self._reply_cv.wait(left)
-            return self._replies.pop(i)
+        """Send a command and wait for its reply (``Calls.call``)."""
+        return self.calls.call(self._cmd.send, kind, *args, timeout=timeout)
 
     def _call_async(self, kind: str, done, *args, timeout: Optional[float] = None) -> None:
-        """
-        Send a command without waiting: ``done((ok, payload))`` is called with its reply.
-
-        From the receiver thread when the reply arrives, at once if the child cannot be reached,
-        with (False, why) if the child dies first or does not answer in time (checked by
-        ``status``).
-        """
-        i = next(self._ids)
-        deadline = time.monotonic() + (self.REPLY_TIMEOUT_S if timeout is None else timeout)
-        with self._reply_cv:
-            self._callbacks[i] = (done, deadline)
-        try:
-            self._cmd.send((kind, i) + args)
-        except (OSError, ValueError) as exc:
-            with self._reply_cv:
-                cb = self._callbacks.pop(i, None)
-            if cb is not None:
-                done((False, f'the learner process is not reachable: {exc}'))
-
-    def _expire_calls(self) -> None:
-        """Answer the calls not waited for whose reply is overdue."""
-        now = time.monotonic()
-        with self._reply_cv:
-            late = [i for i, (_, dl) in self._callbacks.items() if dl < now]
-            late = [self._callbacks.pop(i) for i in late]
-        for done, _ in late:
-            done((False, 'the learner did not answer in time'))
+        """Send a command; ``done((ok, payload))`` gets its reply (``Calls.call_async``)."""
+        self.calls.call_async(self._cmd.send, kind, done, *args, timeout=timeout)
 
     def _send(self, *msg) -> None:
         try:
@@ -436,7 +379,7 @@ class LearnerProcess:
         return path
 
     def status(self) -> dict:
-        self._expire_calls()
+        self.calls.expire()
         d = dict(self._status)
         d['samples_dropped'] = self.samples_dropped
         d['learner_restarts'] = self.restarts

@@ -3,8 +3,6 @@ Which measurements the online estimator learns from, and the buffer that keeps t
 
 Every accepted message is answered; only some are learned:
 
-* a learning-rate limit in *stamp* time (at most one sample per ``min_sample_interval_s``), so a
-  replay decides exactly as the live run did and a 1 kHz stream does not drown the O(n^2) update;
 * novelty (``selection='novelty'``): a sample closer than ``selection_min_distance`` (in
   per-joint scales) to a buffered sample adds nothing but cost (a hovering state would fill the
   buffer with near-duplicates). The scale is ``selection_scale`` if given, else a robust spread
@@ -199,22 +197,10 @@ class Selector:
     STATS_EVERY = 16
 
     def __init__(self):
-        self.last_added_stamp: Optional[float] = None
         self._far_run = 0
         self._trust = 0              # samples for which far ones are learned (a regime change)
         self._stats = None           # (buffer size, additions at computation, mq, sq, mt, st)
         self.additions = 0
-
-    def rate_limited(self, config, stamp: float) -> bool:
-        """
-        Tell whether the sample is rate limited.
-
-        True when the last sample offered for learning is less than ``min_sample_interval_s``
-        older (a stamp that went back is never limited).
-        """
-        dt = config.min_sample_interval_s
-        last = self.last_added_stamp
-        return dt > 0 and last is not None and last <= stamp < last + dt * (1.0 - 1e-9)
 
     def _robust_stats(self, buf: Buffer):
         st = self._stats
@@ -261,7 +247,3 @@ class Selector:
         Q = buf.velocities_unordered()
         d2 = (((Q - qd) / self.scale(config, buf)) ** 2).sum(axis=1).min()
         return bool(d2 >= config.selection_min_distance ** 2)
-
-    def added(self, stamp: float) -> None:
-        """Record that the sample at ``stamp`` was offered for learning."""
-        self.last_added_stamp = stamp

@@ -6,15 +6,19 @@ swaps it in with one reference assignment and answers every message from the one
 answer never waits for a fit, a proof or a rebuild. Across processes a snapshot is pickled: its
 model is then a predict-only copy (``model.snapshot()``: training inputs, weights, scales, prior,
 passivity state, and the Cholesky factors only when the variance is wanted).
+
+:class:`Snapshots` is the learner's part that makes them (and keeps the last one: a snapshot is
+asked for tens of times a second); :class:`SwapLog` is what installing them cost the node.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
-__all__ = ['Snapshot', 'SwapLog']
+__all__ = ['Snapshot', 'Snapshots', 'SwapLog']
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,80 @@ class Snapshot:
     confidence: Optional[np.ndarray] = None
     per_joint: bool = False
     plan: Optional[tuple] = None
+
+
+class Snapshots:
+    """
+    A part of the learner: it makes the snapshots, and keeps the last one (under its lock).
+
+    settings : returns the learner's configuration as it is now; window, structure, grounds,
+    served : the parts a snapshot is taken of. The last snapshot is handed out again while the
+    served model's ``version`` is the same; gains that moved without a new model (a sample the
+    buffer skips) travel in a copy of its fields (``Grounds.seq`` tells).
+    """
+
+    def __init__(self, settings, window, structure, grounds, served):
+        self._settings = settings
+        self._window, self._structure = window, structure
+        self._grounds, self._served = grounds, served
+        self._last: Optional[Snapshot] = None
+        self._gains = -1                  # the grounds' seq the last snapshot carries
+
+    def forget(self) -> None:
+        """Make the next snapshot anew (what it carries changed: gains, a residual bound)."""
+        self._last = None
+
+    def take(self, N: Optional[int], learned_through: Optional[float], variance: bool = True,
+             frozen: bool = False) -> Optional[Snapshot]:
+        """
+        Return what a prediction needs now (None before the first sample).
+
+        N : the number of joints (None: not known yet); learned_through : the newest sample's
+        learning time (s). variance : include what the posterior variance needs (the Cholesky
+        factors). frozen : a self-contained copy for another process (``process``); else the
+        snapshot refers to the live model (in-line use: the caller learns and answers in turn).
+        """
+        win, served = self._window, self._served
+        if N is None or win.buffer is None:
+            return None
+        s = self._last
+        if s is not None and s.version == served.version and \
+                (s.frozen, s.variance) == (frozen, variance or not frozen):
+            self._last = self._with_gains(s)       # the gains earned since, if any
+            return self._last
+        mean, std = self._structure.prior(win, N)
+        model = served.model
+        if model is not None and model.posterior_.structure.has_damping:
+            # a model answers with its own prior and bounds: the same after a reload
+            mean, bound = model.mean_, np.abs(model.Y_train_).max(axis=0)
+            Q = model.X_train_
+        else:
+            Q, T = win.rows_unordered()
+            bound = np.abs(T).max(axis=0) if win.size else np.zeros(N)
+        box = (Q.min(axis=0), Q.max(axis=0)) if len(Q) else None
+        per_joint = model is not None and model.posterior_.structure.has_damping and \
+            model.certificate().guarantee == 'psd'
+        if model is not None and frozen:
+            model = model.snapshot(variance=variance)
+        self._last = self._with_gains(Snapshot(
+            version=served.version, model=model, prior=mean, prior_std=std, force_bound=bound,
+            velocity_box=box, residual_bound=self._structure.residual_bound,
+            learned_through=learned_through, frozen=frozen, variance=variance or not frozen,
+            per_joint=per_joint))
+        return self._last
+
+    def _with_gains(self, snap: Snapshot) -> Snapshot:
+        """
+        Return ``snap`` carrying the gains as they are now.
+
+        The last snapshot is returned as it is while no sample moved the gains; otherwise a
+        copy of its fields (not of its model) with the new gains.
+        """
+        g = self._grounds
+        if snap is self._last and self._gains == g.seq:
+            return snap
+        self._gains = g.seq
+        return dataclasses.replace(snap, **g.fields(self._settings().learning))
 
 
 class SwapLog:

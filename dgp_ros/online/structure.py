@@ -1,17 +1,23 @@
 """
-The learner's parametric part (``prior='auto'``): long history, structure, correction.
+The parametric part of the learner: the prior the D-GP learns beside (no rclpy).
 
-Every learned sample also goes into a :class:`~dgp_ros.dynamics.history.LongHistory` (sufficient
-statistics of the whole run). At each hyper-parameter refit the structure (friction family,
-offsets, the conservative correction of the rigid-body model) is re-selected by
-cross-validation on that history and fitted on all of it; then
+A part of :class:`~dgp_ros.online.learner.Learner`; it owns its state and is called under the
+learner's lock. With ``prior='auto'`` every learned sample also goes into a
+:class:`~dgp_ros.dynamics.history.LongHistory` (sufficient statistics of the whole run). At each
+hyper-parameter refit the structure (friction family, offsets, the conservative correction of
+the rigid-body model) is re-selected by cross-validation on that history and fitted on all of
+it; then
 
 * the D-GP's prior mean is the fitted friction, frozen (passive: non-negative coefficients of
   odd columns; the GP learns what it leaves, and the projection acts on both together);
-* the buffered samples' targets become ``residual - correction`` (the offsets and ``dV/dq``
-  are not damping and must not be learned as such);
+* the window's targets become ``residual - correction`` (the offsets and ``dV/dq`` are not
+  damping and must not be learned as such): ``Window.retarget``;
 * a saved model carries the correction (``predict_residual``), and /diagnostics names the
   structure.
+
+With a fixed ``prior`` the part is the passive prior of that family fitted to the window, which
+answers before the first model and is the output gate's fallback. Either way it keeps the
+largest |residual| learned per joint, which bounds what a correction may make of a target.
 """
 from __future__ import annotations
 
@@ -21,89 +27,92 @@ import numpy as np
 
 from dgp_ros.dynamics.conservative import correction_basis
 from dgp_ros.dynamics.history import LongHistory, ParametricFit
+from dgp_ros.gp.means import make_mean
 
-__all__ = ['StructureMixin']
+__all__ = ['Structure']
 
 
-class StructureMixin:
+class Structure:
     """
-    Mixin of :class:`~dgp_ros.online.learner.Learner` (module docstring).
+    The parametric part (module docstring).
 
-    Uses the learner's ``config``, ``_lock``, ``_N``, ``_inverse``, ``_buf``, ``health``.
+    config : the learner's ``EstimatorConfig`` (its model, prior and bias: structural, so fixed
+    for this part's life); inverse : the rigid-body model (None without one); health : the
+    learner's ``LearnerHealth``, where this part records what it chose and refused.
     """
 
-    _history: Optional[LongHistory] = None
-    _param: Optional[ParametricFit] = None
-    #: the auto prior of the last snapshot: (fit, mean, std, _seq, buffer rows)
-    _auto_cache: Optional[tuple] = None
-    _names_hint: Optional[List[str]] = None
-    _rmax: Optional[np.ndarray] = None
+    #: a correction may make no learned target larger than this times the largest residual
+    CORRECTION_INFLATION = 1.5
+    #: the structure is re-selected when the history has grown by this factor since the last
+    RESELECT_GROWTH = 1.25
 
-    @property
-    def auto(self) -> bool:
-        """Tell whether the structure is chosen from the data (``prior='auto'``)."""
-        return self.config.prior == 'auto' and self.config.model != 'ard'
+    def __init__(self, config, inverse, health):
+        self.auto = config.prior == 'auto' and config.model != 'ard'
+        self._family = 'viscous' if config.model == 'ard' or config.prior == 'auto' else \
+            config.prior
+        self._bias = bool(config.bias)
+        self._inverse = inverse
+        self._health = health
+        self._history: Optional[LongHistory] = None
+        self._param: Optional[ParametricFit] = None
+        #: the auto prior of the last snapshot: (fit, mean, std, window seq, buffer rows)
+        self._auto_cache: Optional[tuple] = None
+        #: the fixed prior fitted to the window: (mean, std, window seq), refitted per tenth
+        self._fixed: Optional[tuple] = None
+        self._rmax: Optional[np.ndarray] = None    # largest |residual| learned per joint
+        self._reselect_now = False    # re-select at the next occasion (a model to be saved)
 
-    def set_joint_names(self, names) -> None:
-        """Take the stream's joint names (they may name a known robot: its URDF kinematics)."""
-        with self._lock:
-            if not self._names_hint and names:
-                self._names_hint = [str(n) for n in names]
-
-    def _structure_names(self) -> List[str]:
-        return list(self.config.joints) or list(getattr(self._inverse, 'joint_names', [])) \
-            or list(self._names_hint or [])
-
-    def _history_push(self, stamp: float, q, qd, qdd, r) -> Optional[np.ndarray]:
+    # ------------------------------------------------------------------ the history
+    def push(self, stamp: float, q, qd, qdd, r, N: int, names: List[str]) -> Optional[np.ndarray]:
         """Add a learned sample to the long history; its correction columns (N, C) or None."""
         if not self.auto:
             return None
+        h = self._health
         if self._history is None:
-            names = self._structure_names()
             basis = None
             if self._inverse is not None and q is not None:
                 try:
                     basis = correction_basis(self._inverse, names)
                 except Exception as exc:        # noqa: BLE001 - offsets and friction still
-                    self.health.last_refit_error = f'no conservative correction: {exc}'
+                    h.last_refit_error = f'no conservative correction: {exc}'
             default = 'friction' if self._inverse is not None else 'viscous'
-            self._history = LongHistory(self._N, basis, default, offsets=self._inverse is not None)
-            self.health.correction_basis = '' if basis is None else basis.source
+            self._history = LongHistory(N, basis, default, offsets=self._inverse is not None)
+            h.correction_basis = '' if basis is None else basis.source
         try:
             return self._history.push(stamp, q, qd, qdd, r)
         except Exception as exc:                # noqa: BLE001 - e.g. a pose pinocchio rejects
-            self.health.last_refit_error = f'long history: {type(exc).__name__}: {exc}'
+            h.last_refit_error = f'long history: {type(exc).__name__}: {exc}'
             return None
 
-    def _reselect(self) -> None:
-        """Re-select and refit the parametric part; retarget the buffer (under the lock)."""
+    @property
+    def history_samples(self) -> int:
+        """Return how many samples the long history holds (0 without one)."""
+        return 0 if self._history is None else self._history.samples
+
+    def reselect(self, window) -> None:
+        """Re-select and refit the parametric part on the history; retarget the window."""
         if not self.auto or self._history is None or self._history.samples == 0:
             return
         self._reselect_now = False
         fit = self._history.select()
-        if fit.conservative and self._inflates(fit):
+        h = self._health
+        if fit.conservative and self._inflates(fit, window):
             # a pose-dependent correction fitted to a short or narrow history can be larger
             # than the residual it corrects (targets of 13 N m where the residual spans 2.6 on
             # a Panda 3 s into a stream): the D-GP would learn it as damping; not that one
             fit = self._history.fit(fit.family, fit.offsets, False)
-            self.health.corrections_refused += 1
+            h.corrections_refused += 1
         self._param = fit
-        self.health.structure = fit.label()
-        self.health.structure_scores = {', '.join(map(str, k)): round(v, 4)
-                                        for k, v in sorted(fit.scores.items(),
-                                                           key=lambda kv: kv[1])[:6]}
-        if self._buf is not None:
-            self._buf.retarget(fit.train_correction)
-            self._target_gen += 1       # what the model holds is not appended to any more
+        h.structure = fit.label()
+        h.structure_scores = {', '.join(map(str, k)): round(v, 4)
+                              for k, v in sorted(fit.scores.items(), key=lambda kv: kv[1])[:6]}
+        window.retarget(fit.train_correction)
 
-    #: a correction may make no learned target larger than this times the largest residual
-    CORRECTION_INFLATION = 1.5
-
-    def _inflates(self, fit) -> bool:
-        """Tell whether ``fit``'s correction inflates the buffered targets (see _reselect)."""
-        if self._buf is None:
+    def _inflates(self, fit, window) -> bool:
+        """Tell whether ``fit``'s correction inflates the buffered targets (see reselect)."""
+        if window.buffer is None:
             return False
-        r, y = self._buf.residuals_unordered()
+        r, y = window.residuals_unordered()
         if not len(r):
             return False
         rmax = np.abs(r).max(axis=0)
@@ -115,37 +124,24 @@ class StructureMixin:
         """Tell whether any target in t (..., N) exceeds the inflation limit of rmax (N,)."""
         return bool(np.any(np.abs(t) > self.CORRECTION_INFLATION * rmax + 1e-12))
 
-    #: the structure is re-selected when the history has grown by this factor since the last
-    RESELECT_GROWTH = 1.25
-
-    #: set to re-select at the next occasion whatever the growth (a model about to be saved)
-    _reselect_now = False
-
-    def _reselect_due(self) -> bool:
+    def reselect_due(self) -> bool:
+        """Tell whether the history grew enough (or a save asks) for a re-selection."""
         h, p = self._history, self._param
         return self.auto and h is not None and h.samples > 0 and (
             p is None or h.samples >= self.RESELECT_GROWTH * max(p.samples, 1) or
             (self._reselect_now and h.samples > p.samples))
 
-    def _history_grew(self) -> bool:
+    def reselect_soon(self) -> None:
+        """Re-select at the next occasion whatever the growth (a model about to be saved)."""
+        self._reselect_now = True
+
+    def history_grew(self) -> bool:
         """Tell whether samples came into the long history since the last selection."""
         h, p = self._history, self._param
         return self.auto and h is not None and p is not None and h.samples > p.samples
 
-    def _with_prior(self, hyper: Optional[dict]) -> Optional[dict]:
-        """Return warm-start hyper-parameters carrying the current frozen prior."""
-        if hyper is None or not self.auto or self._param is None:
-            return hyper
-        return dict(hyper, mean=self._param.friction_mean().fit(None, None).to_dict())
-
-    def restore_residual_bound(self, bound) -> None:
-        """Take the largest |residual| per joint a previous learner saw (a restart), (N,)."""
-        with self._lock:
-            b = np.abs(np.asarray(bound, float))
-            self._rmax = b if self._rmax is None else np.maximum(self._rmax, b)
-            self._snap = None           # the next snapshot carries it
-
-    def _target(self, r: np.ndarray, yt: Optional[np.ndarray]) -> np.ndarray:
+    # ------------------------------------------------------------------ targets
+    def target(self, r: np.ndarray, yt: Optional[np.ndarray]) -> np.ndarray:
         """
         Return the damping target of a residual r (N,) with correction columns yt.
 
@@ -160,20 +156,93 @@ class StructureMixin:
             return r
         t = r - self._param.train_correction(None if yt is None else yt[None])[0]
         if self._inflated(t, self._rmax):
-            self.health.corrections_refused += 1
+            self._health.corrections_refused += 1
             return r
         return t
 
-    def _model_kw(self, cfg=None) -> dict:
-        """Return the GP's constructor arguments: the configuration's, with the frozen prior."""
-        cfg = cfg or self.config
+    @property
+    def residual_bound(self) -> Optional[np.ndarray]:
+        """Return a copy of the largest |residual| learned per joint, (N,), or None."""
+        return None if self._rmax is None else self._rmax.copy()
+
+    def restore_residual_bound(self, bound) -> None:
+        """Take the largest |residual| per joint a previous learner saw (a restart), (N,)."""
+        b = np.abs(np.asarray(bound, float))
+        self._rmax = b if self._rmax is None else np.maximum(self._rmax, b)
+
+    # ------------------------------------------------------------------ the model's parts
+    def with_prior(self, hyper: Optional[dict]) -> Optional[dict]:
+        """Return warm-start hyper-parameters carrying the current frozen prior."""
+        if hyper is None or not self.auto or self._param is None:
+            return hyper
+        return dict(hyper, mean=self._param.friction_mean().fit(None, None).to_dict())
+
+    def model_kw(self, cfg) -> dict:
+        """Return the GP's constructor arguments: ``cfg``'s, with the frozen prior."""
         kw = cfg.model_kwargs()
         if self.auto and self._param is not None:
             kw['prior'] = self._param.friction_mean()
             kw['bias'] = False
         return kw
 
-    def _auto_prior(self):
+    def correction(self):
+        """
+        Return the correction that belongs to the window's current targets (None if none).
+
+        A model fitted on the window carries it (``correction_``, saved with it,
+        ``predict_residual``): targets and correction must come from the same parametric fit.
+        """
+        return self._param.correction() if self.auto and self._param is not None else None
+
+    def offsets(self) -> Optional[list]:
+        """Return the fitted offsets per joint (N m) for /diagnostics, None without any."""
+        p = self._param
+        if p is None or not np.any(p.offsets):
+            return None
+        return [round(float(b), 6) for b in p.bias]
+
+    # ------------------------------------------------------------------ the prior
+    def prior(self, window, N: int):
+        """
+        Return (mean, std): the passive prior the answers come from before the first model.
+
+        ``prior='auto'``: the parametric part itself; else the configured family fitted to the
+        window, refitted per tenth of it (a 7-joint friction prior costs ~15 ms: refitted on
+        every learned sample it held the answers while the first fit ran). std (N,) is the RMS
+        of what the prior leaves of the buffered targets.
+        """
+        auto = self._auto_prior(window, N)
+        if auto is not None:
+            return auto
+        seq = window.seq
+        if self._fixed is None or seq >= self._fixed[2] + max(1, self._fixed[2] // 10):
+            Q, T = window.arrays() if window.size else (np.zeros((0, N)), np.zeros((0, N)))
+            try:
+                mean = make_mean(self._family, 'full', self._bias).fit(Q, T)
+                resid = T - mean(Q) if Q.shape[0] else T
+                std = np.sqrt(np.mean(resid ** 2, axis=0)) if Q.shape[0] else np.zeros(N)
+            except Exception:           # degenerate buffer: no prior damping at all
+                mean, std = make_mean('viscous', 'full').fit(Q[:0], T[:0]), np.zeros(N)
+            self._fixed = (mean, std, seq)
+        return self._fixed[0], self._fixed[1]
+
+    def answering(self, window, N: int, model):
+        """
+        Return the prior the answers come from now (the fallback beside ``model``), or None.
+
+        The served ``model``'s own prior mean where it has one, else ``prior``; None while
+        nothing was fitted (the answer was zero, not a prior's) or the buffer is degenerate.
+        """
+        if model is None and not window.size and not self.history_samples:
+            return None
+        try:
+            if model is not None and model.posterior_.structure.has_damping:
+                return model.mean_
+            return self.prior(window, N)[0]
+        except Exception:           # noqa: BLE001 - no prior yet (degenerate buffer)
+            return None
+
+    def _auto_prior(self, window, N: int):
         """(mean, std) of the parametric part for answers before the first model, or None."""
         if not self.auto or self._history is None or self._history.samples < 1:
             return None
@@ -184,27 +253,17 @@ class StructureMixin:
             fit = h.fit(h.default_family, False, False)
         else:
             if self._param is None or self._param.samples * 2 < h.samples:
-                self._reselect()
+                self.reselect(window)
             fit = self._param
             # every snapshot asks (tens a second): the mean is the fit's own, its stddev over
             # the buffer is refreshed per tenth of the buffer learned (the friction basis at
             # every buffered sample cost 3 to 5 ms a snapshot, the largest part of the learner's
             # own thread on a 7-joint stream)
             c = self._auto_cache
-            if c is not None and c[0] is fit and self._seq < c[3] + max(1, c[4] // 10):
+            if c is not None and c[0] is fit and window.seq < c[3] + max(1, c[4] // 10):
                 return c[1], c[2]
         mean = fit.friction_mean().fit(None, None)
-        Q, T = self._buf.rows_unordered() if self._buf is not None and self._buf.size else \
-            (np.zeros((0, self._N)), np.zeros((0, self._N)))
-        std = np.sqrt(np.mean((T - mean(Q)) ** 2, axis=0)) if Q.shape[0] else np.zeros(self._N)
-        self._auto_cache = (fit, mean, std, self._seq, Q.shape[0])
+        Q, T = window.rows_unordered() if window.size else (np.zeros((0, N)), np.zeros((0, N)))
+        std = np.sqrt(np.mean((T - mean(Q)) ** 2, axis=0)) if Q.shape[0] else np.zeros(N)
+        self._auto_cache = (fit, mean, std, window.seq, Q.shape[0])
         return mean, std
-
-    def _correction(self):
-        """
-        Return the correction that belongs to the buffer's current targets (None if none).
-
-        A model fitted on the buffer carries it (``correction_``, saved with it,
-        ``predict_residual``): targets and correction must come from the same parametric fit.
-        """
-        return self._param.correction() if self.auto and self._param is not None else None

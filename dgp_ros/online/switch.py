@@ -1,6 +1,9 @@
 """
 The learning switch of the learner: stop learning, prove and save the model; resume (no rclpy).
 
+A part of :class:`~dgp_ros.online.learner.Learner` that owns the freeze's state (wanted, running)
+and runs it; the learner says when the switch moves (``stop``, ``resume``).
+
 ``learning`` (a parameter of ``config``) off means serve only: the model that serves when it is
 switched off (or the one loaded from ``model_path`` at start) is the one every later answer
 comes from. Nothing is learned from the stream (``Learner._add`` counts the sample as
@@ -9,7 +12,7 @@ friction residual front end still runs, so ``~/friction_residual`` goes on for m
 
 Switching it off (``Learner.reconfigure``) freezes the model in a job of its own (``freeze``: in
 line with ``refit_mode='sync'``, else in the refit thread, so neither the message path nor the
-parameter call waits for it):
+parameter call waits for it; ``jobs.Refits`` runs it):
 
 1. a refit or rebase still running is discarded (its candidate would change the model after the
    switch);
@@ -29,32 +32,57 @@ the refit clock starts again at the next sample.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
-from typing import Optional, Tuple
+import threading
+import time
+from typing import Callable, Optional, Tuple
 
 from .worker import RefitJob
 
-__all__ = ['LearningSwitch']
+__all__ = ['Switch']
 
 
-class LearningSwitch:
-    """Mixin of :class:`~dgp_ros.online.learner.Learner`: the switch (module docstring)."""
+class Switch:
+    """
+    The learning switch (module docstring).
 
-    def _reset_switch(self) -> None:
-        """Forget the switch's work (a new learner state: nothing to freeze)."""
-        self._freeze_wanted = False       # switched off: the model still to be proven and saved
-        self._freezing = False            # its job runs
-
-    @property
-    def learning_state(self) -> str:
-        """Return 'on', 'stopping' (the model being proven and saved) or 'off'."""
-        if self.config.learning:
-            return 'on'
-        return 'stopping' if self._freeze_wanted or self._freezing else 'off'
+    lock : the learner's lock; settings : returns the configuration as it is now; window,
+    structure, served, rebases, refits : the parts a freeze brings up to date and proves
+    through; health : the learner's ``LearnerHealth``; save : the learner's ``save(path)``;
+    last_t : returns the newest sample's learning time.
+    """
 
     #: how long a save waits for learning to stop (s)
     STOP_WAIT_S = 60.0
+
+    def __init__(self, lock, settings: Callable, window, structure, served, rebases, refits,
+                 health, save: Callable, last_t: Callable):
+        self._lock, self._settings = lock, settings
+        self._window, self._structure, self._served = window, structure, served
+        self._rebases, self._refits = rebases, refits
+        self._health, self._save, self._last_t = health, save, last_t
+        self._wanted = False          # switched off: the model still to be proven and saved
+        self._freezing = False        # its job runs
+        refits.set_freezer(self.freeze, self.due_after_job)
+
+    def state(self, learning: bool) -> str:
+        """Return 'on', 'stopping' (the model being proven and saved) or 'off'."""
+        if learning:
+            return 'on'
+        return 'stopping' if self._wanted or self._freezing else 'off'
+
+    @property
+    def wanted(self) -> bool:
+        """Tell whether a freeze is wanted and not started yet."""
+        return self._wanted
+
+    def stop(self, has_model: bool) -> None:
+        """Learning was switched off (under the lock): freeze the model if there is one."""
+        self._wanted = has_model
+
+    def resume(self) -> None:
+        """Learning was switched on again (under the lock): nothing to freeze."""
+        self._wanted = False
 
     def wait_stopped(self, timeout: float = STOP_WAIT_S) -> bool:
         """
@@ -64,96 +92,76 @@ class LearningSwitch:
         proven, not the one before. The freeze job itself saves without waiting (in line, with
         ``refit_mode='sync'``, nothing else runs while it does).
         """
-        import threading
-        import time
         end = time.monotonic() + timeout
-        while self.learning_state == 'stopping' and time.monotonic() < end:
-            t = self._thread
+        while self.state(self._settings().learning) == 'stopping' and time.monotonic() < end:
+            t = self._refits.thread
             if t is None or t is threading.current_thread():
                 break                   # in line, or the freeze's own save
             if t.is_alive():
                 t.join(min(0.05, max(0.0, end - time.monotonic())))
             else:
                 time.sleep(0.005)
-        return self.learning_state != 'stopping'
+        return self.state(self._settings().learning) != 'stopping'
 
-    def _learning_switched(self, on: bool) -> None:
-        """Under the lock, after ``config.learning`` changed to ``on``."""
-        self._gains_seq += 1                    # the snapshot's gains switch memory (grounds)
-        if on:
-            self._freeze_wanted = False
-            self._clock = None                  # the refit clock starts at the next sample
-            self._last_recert = None
-            self._last_added_t = self._last_t   # no 'stalled' warning for the pause
-            return
-        self._generation += 1                   # a running refit or rebase is discarded
-        self._freeze_wanted = self._model is not None
+    def _job(self) -> RefitJob:
+        return RefitJob('freeze', dataclasses.replace(self._settings()), self._window.seq,
+                        self._refits.generation, self._last_t())
 
-    def _switch_note(self, what: str, on: bool) -> str:
-        """Start the freeze job if one is wanted (outside the lock); ``what`` with a note."""
-        if on:
-            return f'{what}; learning on'
-        job = self._freeze_job()
-        if job is not None:
-            self._start(job)
-        with self._lock:
-            frozen = self._model is not None
-        note = ('learning off: the model is proven and saved (learning: stopping, then off)'
-                if frozen else 'learning off: no model yet, the prior serves')
-        return f'{what}; {note}'
-
-    def _freeze_job(self) -> Optional[RefitJob]:
+    def job(self) -> Optional[RefitJob]:
         """Return the freeze job when one is wanted and no job runs (else None)."""
         with self._lock:
-            if not self._freeze_wanted or self._freezing or self.refit_running():
+            if not self._wanted or self._freezing or self._refits.running():
                 return None
-            return RefitJob('freeze', dataclasses.replace(self.config), self._seq,
-                            self._generation, self._last_t)
+            return self._job()
 
-    def _run(self, job: RefitJob) -> Tuple[bool, str]:
-        if job.kind == 'freeze':
-            return self._freeze(job)
-        out = super()._run(job)
+    def due_after_job(self) -> Optional[RefitJob]:
+        """Return the freeze job wanted after a job that ran meanwhile (in its thread), or None."""
         with self._lock:
-            # switched off while this job ran (and discarded it): freeze now, in this thread
-            freeze = self._freeze_wanted and not self._freezing
-            job = RefitJob('freeze', dataclasses.replace(self.config), self._seq,
-                           self._generation, self._last_t) if freeze else None
-        return self._freeze(job) if job is not None else out
+            return self._job() if self._wanted and not self._freezing else None
 
-    def _freeze(self, job: RefitJob) -> Tuple[bool, str]:
-        """Do steps 2 and 3 of the module docstring (step 1 was the switch)."""
-        with self._lock:
-            if not self._freeze_wanted or job.generation != self._generation:
+    def start(self) -> None:
+        """Start the freeze job if one is wanted (outside the lock)."""
+        job = self.job()
+        if job is not None:
+            self._refits.start(job)
+
+    def freeze(self, job: RefitJob) -> Tuple[bool, str]:
+        """
+        Do steps 2 and 3 of the module docstring (step 1 was the switch).
+
+        The model is brought up to what was learned (appends, else a rebase with a fresh
+        structure), proven with the full proof, and saved to ``model_path``.
+        """
+        lock, served, win = self._lock, self._served, self._window
+        with lock:
+            if not self._wanted or job.generation != self._refits.generation:
                 return False, 'nothing to freeze'
-            self._freeze_wanted, self._freezing = False, True
+            self._wanted, self._freezing = False, True
         try:
-            with self._lock:
-                if self._model is not None and self.unheld:
-                    self.catch_up()
-                behind = self._model is not None and (self.unheld or self._history_grew())
+            with lock:
+                if served.model is not None and served.unheld(win.seq):
+                    served.catch_up(win, self._health, self._settings().buffer_size)
+                behind = served.model is not None and (served.unheld(win.seq) or
+                                                       self._structure.history_grew())
                 if behind:
-                    self._reselect_now = True
+                    self._structure.reselect_soon()
             if behind:
-                self._absorb()          # a rebase: what save does before it writes
-            with self._lock:
-                model = self._model
-                if model is None or job.generation != self._generation:
+                self._rebases.run()     # a rebase: what save does before it writes
+            with lock:
+                if served.model is None or job.generation != self._refits.generation:
                     return False, 'no model to freeze'
-                proof = RefitJob('recertify', job.config, self._model_seq, self._generation,
-                                 self._last_t, model=copy.deepcopy(model), source=model,
-                                 target_gen=self._model_gen, full=True)
-            ok, what = super()._run(proof)
+                proof = self._refits.recertify_job(self._last_t(), job.config, full=True)
+            ok, what = self._refits.prove_now(proof)
             path = job.config.model_path
-            with self._lock:
-                current = job.generation == self._generation and self._model is not None
+            with lock:
+                current = job.generation == self._refits.generation and served.model is not None
             if current and path:
                 try:
-                    what = f'{what}; saved to {self.save(path)}'
+                    what = f'{what}; saved to {self._save(path)}'
                 except Exception as exc:        # noqa: BLE001 - the model serves all the same
-                    with self._lock:
-                        self.health.last_refit_error = f'frozen, but saving failed: {exc}'
+                    with lock:
+                        self._health.last_refit_error = f'frozen, but saving failed: {exc}'
             return ok, what
         finally:
-            with self._lock:
+            with lock:
                 self._freezing = False

@@ -20,7 +20,7 @@ import numpy as np
 
 from dgp_ros.gp.passivity import policy_class
 
-__all__ = ['RefitJob', 'RefitResult', 'run_job', 'prove', 'sane']
+__all__ = ['RefitJob', 'RefitResult', 'run_job', 'prove', 'sane', 'held_out']
 
 
 @dataclass
@@ -124,6 +124,33 @@ def sane(model, Q: np.ndarray, T: np.ndarray, rng=None, probes: int = 2000) -> T
         j = int(np.argmax(worst))
         return False, (f'sanity check: estimates up to {worst[j] * BOUND_FACTOR:.0f} x the '
                        f'largest force of the data on output {j}')
+    return True, ''
+
+
+def held_out(model, base, Q: np.ndarray, T: np.ndarray, factor: float) -> Tuple[bool, str]:
+    """
+    Check a candidate one step ahead on samples neither it nor ``base`` has learned.
+
+    (ok, reason): is the candidate's mean squared error on (Q, T) (k, N) each within ``factor``
+    x that of ``base`` (the served model when the candidate's fit started) and of its own
+    parametric part, plus 1 % of the samples' variance (a candidate that good is good enough,
+    however good the incumbent happens to be on them)? A check that cannot be computed passes
+    (a broken candidate is caught by ``sane``).
+    """
+    try:
+        e_new = model.predict(Q) - T
+        e_old = base.predict(Q) - T
+        e_par = model.mean_.force(Q) - T if model.posterior_.structure.has_damping else e_old
+    except Exception as exc:          # noqa: BLE001 - a broken candidate is caught later
+        return True, f'held-out check skipped: {exc}'
+    e_new = float(np.mean(np.square(e_new)))
+    e_old = float(np.mean(np.square(e_old)))
+    e_par = float(np.mean(np.square(e_par)))
+    floor = float(np.mean(np.var(T, axis=0))) * 1e-2
+    for e_ref, whose in ((e_old, "the current model's"), (e_par, "its parametric part's")):
+        if e_new > factor * e_ref + floor:
+            return False, (f'sanity check: error on the {len(T)} samples that arrived during '
+                           f'the fit {e_new / max(e_ref, 1e-300):.1f} x {whose}')
     return True, ''
 
 

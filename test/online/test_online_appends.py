@@ -11,7 +11,8 @@ import time
 import numpy as np
 
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
-from dgp_ros.online.absorb import Absorber
+from dgp_ros.online.absorb import Rebases
+from dgp_ros.online.learner import Learner
 
 NAMES = ['a', 'b', 'c']
 
@@ -64,11 +65,11 @@ def test_one_step_ahead_beats_learning_in_batches():
     # trajectory that keeps reaching new velocities the lag costs accuracy
     def one_step(append):
         est = OnlineEstimator(cfg())
-        Absorber.append_each = append
+        Learner.append_each = append
         try:
             out = _stream(est, 300, noise=0.01)
         finally:
-            Absorber.append_each = True
+            Learner.append_each = True
         tau = np.array([e.tau for e in out])
         err = np.array([e.tau_hat for e in out]) - tau
         est.close()
@@ -84,7 +85,7 @@ def test_rebases_keep_the_model_near_the_buffer_size():
         if est.trained:
             biggest = max(biggest, est.model.n_samples_)
     assert est.diagnostics()['absorbs'] >= 5
-    assert 40 < biggest <= 40 + 40 // Absorber.REBASE_FRACTION
+    assert 40 < biggest <= 40 + 40 // Rebases.REBASE_FRACTION
     est.close()
 
 

@@ -216,20 +216,22 @@ def test_a_correction_that_would_inflate_a_target_is_not_applied_to_it():
     ``CORRECTION_INFLATION`` x the largest residual is applied.
     """
     from types import SimpleNamespace
-    from dgp_ros.online.learner import Learner
-    lr = Learner(EstimatorConfig(refit_mode='sync'))
+    from dgp_ros.online.health import LearnerHealth
+    from dgp_ros.online.structure import Structure
+    health = LearnerHealth()
+    st = Structure(EstimatorConfig(refit_mode='sync'), None, health)
     for r in ([2.0, -1.0], [-1.5, 0.5]):              # largest |residual|: 2.0 and 1.0
-        np.testing.assert_array_equal(lr._target(np.array(r), None), r)
+        np.testing.assert_array_equal(st.target(np.array(r), None), r)
     corr = np.array([0.5, 0.0])
-    lr._param = SimpleNamespace(train_correction=lambda Y: np.broadcast_to(corr, (1, 2)))
-    np.testing.assert_allclose(lr._target(np.array([1.0, 0.2]), None), [0.5, 0.2])
-    assert lr.health.corrections_refused == 0
+    st._param = SimpleNamespace(train_correction=lambda Y: np.broadcast_to(corr, (1, 2)))
+    np.testing.assert_allclose(st.target(np.array([1.0, 0.2]), None), [0.5, 0.2])
+    assert health.corrections_refused == 0
     corr[:] = [-4.0, 0.0]                                 # 1.0 + 4.0 > 1.25 x 2.0
-    np.testing.assert_array_equal(lr._target(np.array([1.0, 0.2]), None), [1.0, 0.2])
-    assert lr.health.corrections_refused == 1
+    np.testing.assert_array_equal(st.target(np.array([1.0, 0.2]), None), [1.0, 0.2])
+    assert health.corrections_refused == 1
     corr[:] = [0.0, 0.2]                                  # -1.0 - 0.2 within 1.25 x 1.0
-    np.testing.assert_allclose(lr._target(np.array([0.0, -1.0]), None), [0.0, -1.2])
-    assert lr.health.corrections_refused == 1
+    np.testing.assert_allclose(st.target(np.array([0.0, -1.0]), None), [0.0, -1.2])
+    assert health.corrections_refused == 1
 
 
 def test_answers_stay_within_a_factor_of_the_largest_residual_learned():

@@ -10,8 +10,9 @@ import numpy as np
 
 from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, simulate_arm
 from dgp_ros.online import EstimatorConfig, OK, OnlineEstimator, WARN
-from dgp_ros.online.grounds import Skill
+from dgp_ros.online.grounds import Grounds
 from dgp_ros.online.health import Health
+from dgp_ros.online.skill import Skill
 
 NAMES = list(ARM_JOINTS['panda'])
 STATE = {'trained': True, 'fill': 100, 'min_samples': 20, 'certifies': True, 'certified': True,
@@ -68,7 +69,7 @@ def test_a_model_worse_than_its_parametric_part_is_named():
     for i in range(800):
         t = rng.normal(size=2)
         skill.note(t, t + np.array([0.01, 2.0]) * rng.normal(size=2), t, stamp=0.01 * i)
-    est.learner._skill = skill
+    est.learner.grounds = Grounds(est.learner.grounds.seq + 1, skill)
     d = est.diagnostics()
     assert d['level'] == WARN and 'worse than its parametric part on b' in d['message'], d
     est.close()
