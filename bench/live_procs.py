@@ -32,53 +32,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import struct
 import sys
-import threading
 import time
 
-TOPIC_IN = '/joint_states'
-TOPIC_OUT = '/dgp_estimator/damping_force'
-FINGER = 'panda_finger_joint1'
-
-
-def _stop_event():
-    stop = threading.Event()
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, lambda *_: stop.set())
-    return stop
-
-
-def thread_cpu() -> dict:
-    """CPU seconds of each thread of this process so far, by thread name (summed per name)."""
-    out: dict = {}
-    clk = os.sysconf('SC_CLK_TCK')
-    for tid in os.listdir('/proc/self/task'):
-        try:
-            with open(f'/proc/self/task/{tid}/stat') as f:
-                s = f.read()
-        except OSError:
-            continue
-        name = s[s.find('(') + 1:s.rfind(')')]
-        if int(tid) == os.getpid():
-            name = 'main'
-        rest = s[s.rfind(')') + 2:].split()
-        out[name] = out.get(name, 0.0) + (int(rest[11]) + int(rest[12])) / clk
-    return out
-
-
-def _write_json(path: str, obj) -> None:
-    tmp = path + '.tmp'
-    with open(tmp, 'w') as f:
-        json.dump(obj, f)
-    os.replace(tmp, path)
+from live_common import FINGER, stop_event, thread_cpu, TOPIC_IN, TOPIC_OUT, write_json
 
 
 # ----------------------------------------------------------------------------- player
 def player(a) -> None:
     import numpy as np
-    stop = _stop_event()
+    stop = stop_event()
     from dgp_ros.dynamics import ARM_JOINTS, simulate_arm
     names = list(ARM_JOINTS['panda']) + [FINGER]
     phases = [(float(r), float(s)) for r, s in (p.split(':') for p in a.phases.split(','))]
@@ -140,11 +104,11 @@ def player(a) -> None:
         late.append(time.monotonic() - dl)
         n += 1
     late = np.array(late) if late else np.zeros(1)
-    _write_json(a.out, {'published': n, 't0_wall': t0_wall, 'phases': phases,
-                        'late_p50_ms': float(np.percentile(late, 50) * 1e3),
-                        'late_p99_ms': float(np.percentile(late, 99) * 1e3),
-                        'late_max_ms': float(late.max() * 1e3),
-                        'seconds': float(offsets[n - 1]) if n else 0.0})
+    write_json(a.out, {'published': n, 't0_wall': t0_wall, 'phases': phases,
+                       'late_p50_ms': float(np.percentile(late, 50) * 1e3),
+                       'late_p99_ms': float(np.percentile(late, 99) * 1e3),
+                       'late_max_ms': float(late.max() * 1e3),
+                       'seconds': float(offsets[n - 1]) if n else 0.0})
     node.destroy_node()
     ctx.try_shutdown()
 
@@ -186,7 +150,7 @@ def _stamp_ns(raw: bytes) -> int:
 
 def listener(a) -> None:
     import numpy as np
-    stop = _stop_event()
+    stop = stop_event()
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
@@ -406,14 +370,14 @@ def estimator(a, ros_args) -> int:
         except Exception:       # noqa: BLE001 - an older tree
             received = None
     # from the first message callback to the end of the last one
-    _write_json(a.cpu_out, {'main_thread_s': (st['main1'] - (st['main0'] or 0)) * 1e-9,
-                            'callbacks_s': st['cb_ns'] * 1e-9, 'calls': st['calls'],
-                            'process_s': st['proc1'] - (st['proc0'] or 0.0),
-                            'received': received,
-                            'executor': os.environ.get('DGP_EXECUTOR', ''),
-                            'slow_callbacks': slow[-200:], 'gc_pauses': gcs[-200:],
-                            'diag_times': diag_t, 'swaps': swaps[-5000:],
-                            'threads': st.get('threads', {}), 'profile': st.get('profile')})
+    write_json(a.cpu_out, {'main_thread_s': (st['main1'] - (st['main0'] or 0)) * 1e-9,
+                           'callbacks_s': st['cb_ns'] * 1e-9, 'calls': st['calls'],
+                           'process_s': st['proc1'] - (st['proc0'] or 0.0),
+                           'received': received,
+                           'executor': os.environ.get('DGP_EXECUTOR', ''),
+                           'slow_callbacks': slow[-200:], 'gc_pauses': gcs[-200:],
+                           'diag_times': diag_t, 'swaps': swaps[-5000:],
+                           'threads': st.get('threads', {}), 'profile': st.get('profile')})
     return code
 
 

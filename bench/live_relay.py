@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 
-from live_procs import _stop_event, _write_json, thread_cpu, TOPIC_IN
+from live_common import stop_event, thread_cpu, TOPIC_IN, write_json
 
 __all__ = ['relay']
 
@@ -29,7 +29,7 @@ def relay(a) -> None:
     (``DGP_EXECUTOR=waitset``: the node's wait-set loop instead; ``DGP_RELAY``: the module
     docstring).
     """
-    stop = _stop_event()
+    stop = stop_event()
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -65,7 +65,7 @@ def relay(a) -> None:
     while not stop.is_set():
         ex.spin_once(timeout_sec=0.1)
     if a.cpu_out:
-        _write_json(a.cpu_out, {'threads': thread_cpu()})
+        write_json(a.cpu_out, {'threads': thread_cpu()})
     ex.shutdown()
     node.destroy_node()
     ctx.try_shutdown()
@@ -94,7 +94,7 @@ def _lean_relay(node, pub, ctx, stop, a) -> None:
                 break
             inner.publish_raw(got[0])
     if a.cpu_out:
-        _write_json(a.cpu_out, {'threads': thread_cpu()})
+        write_json(a.cpu_out, {'threads': thread_cpu()})
     h.__exit__(None, None, None)
     node.destroy_node()
     ctx.try_shutdown()

@@ -1,0 +1,52 @@
+"""
+What the processes of bench/arm_live.py share: the topics and the small helpers of a role.
+
+``live_procs.py`` (player, listener, prober, estimator, hog) and ``live_relay.py`` (the relay)
+import it; neither imports the other's helpers, so the two stay apart.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+
+__all__ = ['TOPIC_IN', 'TOPIC_OUT', 'FINGER', 'stop_event', 'thread_cpu', 'write_json']
+
+TOPIC_IN = '/joint_states'
+TOPIC_OUT = '/dgp_estimator/damping_force'
+FINGER = 'panda_finger_joint1'
+
+
+def stop_event():
+    """Return an event set by SIGINT or SIGTERM (a role writes its results then)."""
+    stop = threading.Event()
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, lambda *_: stop.set())
+    return stop
+
+
+def thread_cpu() -> dict:
+    """CPU seconds of each thread of this process so far, by thread name (summed per name)."""
+    out: dict = {}
+    clk = os.sysconf('SC_CLK_TCK')
+    for tid in os.listdir('/proc/self/task'):
+        try:
+            with open(f'/proc/self/task/{tid}/stat') as f:
+                s = f.read()
+        except OSError:
+            continue
+        name = s[s.find('(') + 1:s.rfind(')')]
+        if int(tid) == os.getpid():
+            name = 'main'
+        rest = s[s.rfind(')') + 2:].split()
+        out[name] = out.get(name, 0.0) + (int(rest[11]) + int(rest[12])) / clk
+    return out
+
+
+def write_json(path: str, obj) -> None:
+    """Write ``obj`` as JSON to ``path`` atomically (a reader never sees half of it)."""
+    tmp = path + '.tmp'
+    with open(tmp, 'w') as f:
+        json.dump(obj, f)
+    os.replace(tmp, path)
