@@ -7,10 +7,10 @@ defaults and hashes (sha256) what a user gets from it:
 
 * ``a320``: the default approach, every answer one step ahead (the ledger's ``a320_case``);
 * ``family<k>``: flights of the ledger's A320 family (``--family``, default 2 3 6);
-* ``panda_real``, ``panda_real_30hz``, ``ur10_real``: the robot family's cases (shared logs;
-  skipped without them): the live answers, the saved model file's arrays and its held-out
-  ``predict_residual``;
-* ``panda_sim``: the ledger's simulated Panda, its saved model's answers held out;
+* ``panda_real``, ``panda_real_30hz``, ``ur10_real`` (and ``panda_real_500hz``,
+  ``panda_real_125hz``): the robot family's cases (shared logs; skipped without them): the
+  live answers, the saved model file's arrays and its held-out ``predict_residual``;
+* ``panda_sim``, ``ur5_sim``: the ledger's simulated arms, their saved models' answers held out;
 * ``loop``: the ledger's closed-loop learning transient (the Panda under the example controller
   with the estimator's compensation, 3 s): the tracking errors and the compensation;
 * ``header``: the C++ header ``dgp-export`` writes for the UR10's saved model (the simulated
@@ -40,7 +40,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CASES = ('a320', 'family', 'panda_real', 'panda_real_30hz', 'ur10_real', 'panda_sim', 'header',
-         'loop')
+         'loop', 'panda_real_500hz', 'panda_real_125hz', 'ur5_sim')
 
 
 def _digest(*arrays) -> str:
@@ -135,16 +135,16 @@ def tau_i(log: dict, i: int) -> np.ndarray:
     return log['tau'][i]
 
 
-def panda_sim(saved: dict) -> dict:
-    """Learn the ledger's simulated Panda (60 % of 20 s) and hash its saved model held out."""
+def panda_sim(saved: dict, robot: str = 'panda') -> dict:
+    """Learn the ledger's simulated arm (60 % of 20 s) and hash its saved model held out."""
     from dgp_ros.dynamics import example_robot_urdf
     from dgp_ros.dynamics.arm_stream import demo_arm
     from dgp_ros.gp import load_model
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
-    d = demo_arm('panda', 20.0, seed=0)
+    d = demo_arm(robot, 20.0, seed=0)
     names = list(d['names'])
     est = OnlineEstimator(EstimatorConfig(refit_mode='sync', inverse_dynamics='urdf',
-                                          urdf_file=example_robot_urdf('panda'), joints=names))
+                                          urdf_file=example_robot_urdf(robot), joints=names))
     est.set_outputs(stddev=False, damping=False)
     t = d['t']
     k = int(np.searchsorted(t, 12.0))
@@ -153,10 +153,10 @@ def panda_sim(saved: dict) -> dict:
         e = est.process(float(t[i]), names, d['qd'][i], d['effort'][i], d['q'][i])
         if e is not None:
             answers.append(e.tau_hat)
-    path = os.path.join(saved['dir'], 'panda_sim.npz')
+    path = os.path.join(saved['dir'], f'{robot}_sim.npz')
     est.save(path)
     est.close()
-    saved.setdefault('paths', {})['panda_sim'] = path
+    saved.setdefault('paths', {})[f'{robot}_sim'] = path
     model = load_model(path)
     held = model.predict(d['qd_true'][k::10])
     return {'answers': _digest(np.array(answers)), 'model_file': _file_digest(path),
@@ -213,6 +213,12 @@ def run(cases, family) -> dict:
                 out[case] = header(saved)
             elif case == 'loop':
                 out[case] = loop()
+            elif case == 'panda_real_500hz':
+                out[case] = arm('real Panda at 500 Hz', saved)
+            elif case == 'panda_real_125hz':
+                out[case] = arm('real Panda at 125 Hz', saved)
+            elif case == 'ur5_sim':
+                out[case] = panda_sim(saved, 'ur5')
             print(f'[fingerprint] {case}: {time.perf_counter() - t0:.0f} s', file=sys.stderr,
                   flush=True)
     return out

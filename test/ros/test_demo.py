@@ -60,6 +60,10 @@ def test_launch_file_is_valid_python_with_its_nodes(name):
         assert needle in src, needle
     if name == 'robot.launch.py':          # no URDF parameter: the topic is the source
         assert "'robot_description'" not in src and "'urdf_file'" not in src
+    # one set of defaults everywhere: no launch file sets a learning parameter of its own
+    for param in ("'prior'", "'bias'", "'elements'", "'buffer_size'"):
+        assert param not in src, f'{name} sets {param}'
+    assert "default_value='projected'" not in src
 
 
 @pytest.mark.parametrize('name', sorted(LAUNCH))
