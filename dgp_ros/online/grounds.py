@@ -42,6 +42,14 @@ allows: an aircraft's forces (known to 1e-3) earn full weight within a few sampl
 joint torque within tens. The prior's gain takes its first sample as it is (an aircraft's prior
 fitted on one sample answers the next to 1e-4); the model's needs two.
 
+**The floor.** The gains move by one sample's weight of a second's memory: a model that goes
+wrong at once kept its weight for 1.5 to 3 s at 30 Hz. So a faster memory (``skill._Floor``,
+0.3 s, at least 4 samples) scores the answers as they were used, the fallback ``a p`` and the
+blend ``f + w (u - f)``, against no answer, and scales the prior's gain and the model's weight
+by factors that go toward 0 where that answer did worse than answering nothing (by at most
+0.05 a sample: no step in the published force): within a second at any rate, no part that does
+worse than no answer stays in the answer, and the status names the outputs.
+
 **The blend** (:func:`dgp_ros.gp.blend.blend`, where a saved model applies it too) keeps
 every guarantee the answer had. With ``S = diag(sqrt(w))``
 and ``F = diag((1 - w) a m_d(qd))``, the published damping matrix is ``D' = S D S + F``: where
@@ -198,6 +206,13 @@ class Grounds:
     def summary(self) -> dict:
         """Return the per-joint figures of /diagnostics (``Skill.summary``), {} before any."""
         return {} if self._skill is None else self._skill.summary()
+
+    def worse_than_nothing(self, names) -> list:
+        """Return the names of the outputs whose model did worse than no answer just now."""
+        s = self._skill
+        if s is None:
+            return []
+        return [names[j] for j in np.flatnonzero(s.worse_than_nothing())]
 
     def trailing(self, names) -> list:
         """

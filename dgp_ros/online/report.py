@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from typing import List
 
+from .skill import FLOOR_S
+
 __all__ = ['learner_status', 'STALL_WARN_S']
 
 #: stamp time without a learned sample (while moving) after which learning is said to stall
@@ -85,6 +87,11 @@ def warnings(L) -> List[str]:
     out += _front_warnings(L.front.residual, L.health)
     if L.served.model is not None:
         names = L.structure_names() or [str(j) for j in range(L.N or 0)]
+        bad = L.grounds.worse_than_nothing(names)
+        if bad:
+            out.append(f'the model answered worse than no answer on {", ".join(bad)} (one-step, '
+                       f'the last {FLOOR_S:g} s): those answers fall back to the parametric '
+                       'part, or to zero where it did worse too')
         worse = L.grounds.trailing(names)
         if worse:
             out.append(f'the model answers worse than its parametric part on '

@@ -14,7 +14,8 @@ from typing import Optional
 import numpy as np
 
 __all__ = ['Skill', 'HALF_LIFE_S', 'HALF_LIFE_SAMPLES', 'LONG_HALF_LIFE_S', 'MAX_STEP_S',
-           'PSEUDO_SAMPLES', 'FULL_GAIN', 'EVIDENCE_S', 'SURPRISE_SIGNAL', 'SKILL_WARN_MARGIN']
+           'PSEUDO_SAMPLES', 'FULL_GAIN', 'EVIDENCE_S', 'SURPRISE_SIGNAL', 'SKILL_WARN_MARGIN',
+           'FLOOR_S', 'FLOOR_SAMPLES', 'FLOOR_MIN', 'FLOOR_STEP']
 
 
 #: learning time (s) over which the skill is measured: a sample's weight halves after it ...
@@ -45,6 +46,14 @@ FULL_GAIN = 0.8
 #: by hand": the real Panda's split 0.545 with it, 0.567 without; on 22 A320 flights 0.05-0.7
 #: keep the Panda at 0.545, 0.1-0.2 every flight within the family's limits, 0.3 not)
 SURPRISE_SIGNAL = 0.1
+#: the floor of the answers (``_Floor``): over about this much learning time (s), or at least
+#: ``FLOOR_SAMPLES`` samples, a part whose one-step error exceeds no answer's is not used
+FLOOR_S = 0.3
+FLOOR_SAMPLES = 4
+#: ... once this many samples' worth of its answers were scored, its factor moving at most this
+#: much per sample
+FLOOR_MIN = 3.0
+FLOOR_STEP = 0.05
 #: one-step skill (1 - MSE / MSE of no answer) by which the model may trail its parametric part
 #: on a joint, over the last seconds, before the status says so (``Grounds.trailing``)
 SKILL_WARN_MARGIN = 0.1
@@ -127,6 +136,51 @@ class _Memory:
         self.msem = np.where(w >= 1.0, 0.5, 2.0)
 
 
+class _Floor:
+    """
+    The last fraction of a second of one-step errors: no answer's, the fallback's, the blend's.
+
+    The short memory's gains need a second (100 samples: 3.3 s at 30 Hz) to turn away from a
+    model that just went wrong. The floor keeps errors over ``FLOOR_S`` (at least
+    ``FLOOR_SAMPLES`` samples) and a factor per output for the model's weight and one for the
+    prior's gain: each goes toward 1 where its answer as used (the fallback ``a p``; the blend
+    ``f + w (u - f)``) did no worse than answering nothing, toward 0 where its error reached
+    twice no answer's (linearly between), by at most ``FLOOR_STEP`` per sample, so that the
+    published force has no step and a part that does worse than no answer is out within a few
+    tenths of a second at any stream rate.
+    """
+
+    def __init__(self, N: int):
+        z = np.zeros
+        self.e0, self.ef, self.ey = z(N), z(N), z(N)
+        self.n_prior = self.n_model = 0.0
+        self.fm, self.fp = np.ones(N), np.ones(N)      # the factors of model and prior
+
+    @staticmethod
+    def decay(dt: float) -> float:
+        return 0.5 ** min(dt / FLOOR_S, 1.0 / FLOOR_SAMPLES)
+
+    def note(self, t, f, y, g: float) -> None:
+        """Take the target ``t``, the fallback's answer ``f`` and the blend's ``y`` (or None)."""
+        self.e0 = g * self.e0 + (1.0 - g) * t * t
+        self.ef = g * self.ef + (1.0 - g) * (t - f) ** 2
+        self.n_prior = g * self.n_prior + 1.0
+        if y is not None:
+            self.ey = g * self.ey + (1.0 - g) * (t - y) ** 2
+            self.n_model = g * self.n_model + 1.0
+        self.fp = self._move(self.fp, self.ef, self.n_prior)
+        self.fm = self._move(self.fm, self.ey, self.n_model)
+
+    def _move(self, factor, err, n):
+        e0 = np.maximum(self.e0, 1e-300)
+        target = np.where(n >= FLOOR_MIN, np.clip(2.0 - err / e0, 0.0, 1.0), 1.0)
+        return factor + np.clip(target - factor, -FLOOR_STEP, FLOOR_STEP)
+
+    def below(self) -> np.ndarray:
+        """Return per output whether the blend's recent answers did worse than nothing."""
+        return (self.n_model >= FLOOR_MIN) & (self.ey > self.e0)
+
+
 class Skill:
     """
     One-step-ahead skill of the model and of the parametric part, per joint (module docstring).
@@ -144,6 +198,7 @@ class Skill:
         self.N = int(N)
         self.short = _Memory(N, half_life_s)
         self.long = _Memory(N, long_half_life_s)
+        self.floor = _Floor(N)
         self.samples = 0
         self.surprise = 0.0                        # the last sample's error / recent RMS error
         self.evidence_s = 0.0                      # learning time the model was scored over
@@ -168,19 +223,21 @@ class Skill:
         step = self._step(stamp)
         gs, gl = self.short.decay(step), self.long.decay(step)
         self.samples += 1
+        m = self.short
+        f = m.a * p                                # fallback and blend as they answered it
+        u = None if model is None else np.asarray(model, float)
+        if u is not None and not np.all(np.isfinite(u)):
+            u = None
+        self.floor.note(t, f, None if u is None else f + m.w * (u - f), _Floor.decay(step))
         self.short.note_prior(t, p, gs)
         self.long.note_prior(t, p, gl)
         self.surprise = 0.0
-        if model is None:
-            return
-        u = np.asarray(model, float)
-        if not np.all(np.isfinite(u)):
+        if u is None:
             return
         full = corr = None
         if full_target is not None and correction is not None and \
                 np.all(np.isfinite(full_target)) and np.all(np.isfinite(correction)):
             full, corr = np.asarray(full_target, float), np.asarray(correction, float)
-        m = self.short
         scored = m.n_model >= 2.0
         err = m.note_model(t, u, p, full, corr, gs)
         self.long.note_model(t, u, p, full, corr, gl)
@@ -209,9 +266,20 @@ class Skill:
         return m.g * (x * x * (3.0 - 2.0 * x))
 
     def gains(self):
-        """Return (w, a, c): model weight, prior gain, confidence, (N,) copies (class doc)."""
-        m = self.short
-        return m.w.copy(), m.a.copy(), self._confidence(m)
+        """
+        Return (w, a, c): model weight, prior gain, confidence, (N,) copies (class doc).
+
+        Each times its factor of the floor (``_Floor``): toward 0 where that part's last answers
+        did worse than no answer; the confidence times the larger of the two (none where both
+        did).
+        """
+        m, fl = self.short, self.floor
+        return (m.w * fl.fm, m.a * fl.fp,
+                self._confidence(m) * np.maximum(fl.fm, fl.fp))
+
+    def worse_than_nothing(self) -> np.ndarray:
+        """Return per output whether the blended answers just now did worse than no answer."""
+        return self.floor.below()
 
     def long_gains(self):
         """

@@ -73,3 +73,30 @@ def test_a_model_worse_than_its_parametric_part_is_named():
     d = est.diagnostics()
     assert d['level'] == WARN and 'worse than its parametric part on b' in d['message'], d
     est.close()
+
+
+def test_a_model_worse_than_no_answer_is_named_and_dropped_within_a_second():
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync', min_samples=10, buffer_size=60))
+    rng = np.random.default_rng(0)
+    for i in range(100):
+        q = rng.normal(size=2)
+        est.process(0.01 * i, ['a', 'b'], q, 2.0 * q)
+    assert 'worse than no answer' not in est.diagnostics()['message']
+    # the one-step record at 30 Hz of a model right for 10 s (no prior to fall back on), then
+    # wrong on b by four times the force: its weight there is gone within a second (the
+    # second's memory alone took 1.5 to 3 s at 30 Hz)
+    skill, dt = Skill(2), 1.0 / 30.0
+    for i in range(300):
+        t = rng.normal(size=2)
+        skill.note(t, t + 0.01 * rng.normal(size=2), np.zeros(2), stamp=dt * i)
+    k = 0
+    while skill.gains()[0][1] > 0.1 and k < 300:
+        t = rng.normal(size=2)
+        skill.note(t, t + np.array([0.0, 4.0]) * rng.normal(size=2), np.zeros(2),
+                   stamp=10.0 + dt * k)
+        k += 1
+    assert k * dt <= 1.0 and skill.gains()[0][0] > 0.9, (k, skill.gains())
+    est.learner.grounds = Grounds(est.learner.grounds.seq + 1, skill)
+    d = est.diagnostics()
+    assert d['level'] == WARN and 'worse than no answer on b ' in d['message'], d['message']
+    est.close()
