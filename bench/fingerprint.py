@@ -224,19 +224,38 @@ def run(cases, family) -> dict:
     return out
 
 
-def compare(a: str, b: str) -> int:
+def compare(a: str, b: str, section: bool = False) -> int:
+    """Print case by case whether two fingerprint files agree; 1 if any case differs."""
     with open(a) as fa, open(b) as fb:
         A, B = json.load(fa), json.load(fb)
-    bad = 0
+    ca, cb = A.pop('_commit', '?'), B.pop('_commit', '?')
+    bad, rows = 0, []
     for case in sorted(set(A) | set(B)):
         same = A.get(case) == B.get(case)
         bad += not same
         print(f'{case:18s} {"identical" if same else "DIFFERENT"}')
+        keys = ('answers', 'model_file', 'held_out', 'header', 'error')
+        got = B.get(case) or {}
+        rows.append(f'| {case} | {"identical" if same else "**different**"} | ' +
+                    ', '.join(f'{k} {got[k]}' for k in keys if k in got) + ' |')
         if not same:
             for k in sorted(set(A.get(case) or {}) | set(B.get(case) or {})):
                 x, y = (A.get(case) or {}).get(k), (B.get(case) or {}).get(k)
                 if x != y:
                     print(f'    {k}: {x} -> {y}')
+    if section:
+        sys.path.insert(0, HERE)
+        import common as C
+        body = '\n'.join([
+            C.header_lines(f'Fingerprints: {ca} against {cb} (issue 47)',
+                           'bench/fingerprint.py --compare A B --section', False).rstrip(), '',
+            'Every case in line with the defaults (module docstring of bench/fingerprint.py); '
+            'sha256 (first 16 hex digits) of every answer one step ahead, of the saved model '
+            "file (its arrays and header, without the proof's wall time), of its held-out "
+            'answers and of the exported header.', '',
+            '| case | result | hashes (second file) |', '|---|---|---|'] + rows)
+        print('wrote', C.write_section(os.path.join(os.path.dirname(HERE), 'docs'),
+                                       'fingerprint', body))
     return 1 if bad else 0
 
 
@@ -247,9 +266,11 @@ def main(argv=None) -> int:
     p.add_argument('--cases', nargs='*', default=list(CASES), choices=CASES)
     p.add_argument('--family', nargs='*', type=int, default=[2, 3, 6])
     p.add_argument('--compare', nargs=2, metavar=('A', 'B'), help='compare two JSON files')
+    p.add_argument('--section', action='store_true',
+                   help="with --compare: write the table into docs/BENCHMARKS.md ('fingerprint')")
     a = p.parse_args(argv)
     if a.compare:
-        return compare(*a.compare)
+        return compare(*a.compare, section=a.section)
     repo = os.path.abspath(a.repo)
     sys.path[:0] = [repo, os.path.join(repo, 'bench')]
     for m in [m for m in sys.modules if m.split('.')[0] in ('dgp_ros', 'sim_bridge')]:
@@ -257,6 +278,9 @@ def main(argv=None) -> int:
     import dgp_ros
     print(f'[fingerprint] {os.path.dirname(dgp_ros.__file__)}', file=sys.stderr)
     out = run(a.cases, a.family)
+    import subprocess
+    out['_commit'] = subprocess.run(['git', '-C', repo, 'rev-parse', '--short', 'HEAD'],
+                                    capture_output=True, text=True).stdout.strip() or '?'
     text = json.dumps(out, indent=1, sort_keys=True)
     if a.json:
         with open(a.json, 'w') as fh:
