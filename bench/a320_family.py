@@ -372,6 +372,8 @@ def main(argv=None) -> int:
     tag = a.tag or commit_of(dgp_ros.__file__) + ''.join(
         f'_{k}-{v}' for k, v in sorted(PARAMS.items()))
     where = os.path.dirname(dgp_ros.__file__)
+    if where.startswith(REPO + os.sep):
+        where = os.path.relpath(where, REPO)      # this checkout's: no machine path
     results = []
     t0 = time.perf_counter()
     for i in idx:
@@ -422,7 +424,9 @@ def main(argv=None) -> int:
     if a.section:
         sys.path.insert(0, HERE)
         import common as C
-        body = md.replace('# ', '## ', 1)
+        title, rest = md.split('\n', 1)
+        body = C.header_lines(title.lstrip('# '), f'bench/{os.path.basename(__file__)}',
+                              a.quick, wall) + rest
         print('wrote', C.write_section(os.path.join(REPO, 'docs'), 'a320_family', body))
     return 0
 

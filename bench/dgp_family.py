@@ -359,6 +359,8 @@ def main(argv=None) -> int:
     tag = a.tag or commit_of(dgp_ros.__file__) + ''.join(
         f'_{k}-{v}' for k, v in sorted(PARAMS.items()))
     where = os.path.dirname(dgp_ros.__file__)
+    if where.startswith(REPO + os.sep):
+        where = os.path.relpath(where, REPO)      # this checkout's: no machine path
     chosen = a.systems.split(',') if a.systems else (QUICK if a.quick else
                                                      [s[0] for s in SYSTEMS])
     duration, last = (40.0, 10.0) if a.quick else (DURATION_S, LAST_S)
@@ -393,7 +395,9 @@ def main(argv=None) -> int:
     if a.section:
         sys.path.insert(0, HERE)
         import common as C
-        body = md.replace('# ', '## ', 1)
+        title, rest = md.split('\n', 1)
+        body = C.header_lines(title.lstrip('# '), f'bench/{os.path.basename(__file__)}',
+                              a.quick, wall) + rest
         print('wrote', C.write_section(os.path.join(REPO, 'docs'), 'dgp_family', body))
     return 0
 
