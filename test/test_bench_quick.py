@@ -279,3 +279,15 @@ def test_cpp_export_quick(tmp_path):
         return
     s = section(tmp_path, 'cpp_export')
     assert 'friction()' in s and '| A320' in s
+
+
+@pytest.mark.slow
+def test_warmup_drift_quick(tmp_path):
+    run('warmup_drift.py', tmp_path)
+    s = section(tmp_path, 'warmup_drift')
+    assert (tmp_path / 'bench' / 'warmup_drift.png').stat().st_size > 1000
+    rows = table_rows(s, ('0',))
+    assert len(rows) == 1, s
+    steady, worst = numbers(rows[0][1]) + numbers(rows[0][2])
+    # the run learned the friction before the drift (a model that learned nothing scores ~1)
+    assert 0 < steady < 0.05 and math.isfinite(worst) and worst >= 0, rows[0]
