@@ -15,16 +15,23 @@ rigid-body model) is explained by three linear parts, each per joint j:
 
 The history is kept as sufficient statistics (the Gram matrix of the columns and their product
 with the residual, per joint) in blocks of :data:`BLOCK_S` seconds of learning time: O(1) memory
-and O(N C^2) per sample whatever the length of the run. The structure (which friction family,
-offsets or not, the correction or not) is chosen by forward-chaining cross-validation over the
-last blocks: fit on everything before a block, score on the block, with the columns that are
-applied (a correction's training-only columns are not). The score is the mean over joints of the
-pooled squared error over the residual's variance. Offsets need a clear win (they drift with the
-pose on a real arm: learned on one part of a motion they are wrong on the next, and adjacent
-blocks cannot show that), and the simplest structure close to the best is taken. Offsets are
-then kept joint by joint: a joint keeps its offset only where it cuts that joint's own score by
-:data:`JOINT_OFFSET_MARGIN` (a real UR10's wrist 2 carries a 2.4 N m offset that no other joint
-has: without it its held-out NMSE is 0.10, with it 0.016).
+and O(N C^2) per sample whatever the length of the run (:mod:`~.statistics`).
+
+The structure (which friction family, offsets or not, the correction or not) is chosen by
+forward-chaining cross-validation over the last blocks: fit on everything before a block, score on
+the block, with the columns that are applied (a correction's training-only columns are not). The
+score is the mean over joints of the pooled squared error over the residual's variance. Offsets
+need a clear win (they drift with the pose on a real arm: learned on one part of a motion they are
+wrong on the next, and adjacent blocks cannot show that), and the simplest structure close to the
+best is taken. Offsets are then kept joint by joint: a joint keeps its offset only where it cuts
+that joint's own score by :data:`JOINT_OFFSET_MARGIN` (a real UR10's wrist 2 carries a 2.4 N m
+offset that no other joint has: without it its held-out NMSE is 0.10, with it 0.016).
+
+Beside the whole history it keeps recent memories, in which a block's weight halves with every
+:data:`HALF_LIVES_S` seconds of learning that follow it. Where the chosen structure fitted on
+one of them predicts the scored blocks clearly better than fitted on all of it
+(:data:`RECENT_MARGIN`), that memory serves: friction that drifts (a gearbox warming up, wear) is
+followed, and steady friction keeps every sample.
 """
 from __future__ import annotations
 
@@ -34,8 +41,9 @@ from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, cholesky, solve_triangular
-from scipy.optimize import nnls
+from scipy.linalg import cho_factor, cho_solve
+
+from .statistics import nonnegative_part, Stats
 
 __all__ = ['LongHistory', 'ParametricFit', 'FRICTION_EPS', 'STRIBECK_VS', 'FAMILIES']
 
@@ -62,6 +70,12 @@ SIMPLER_MARGIN = 0.05
 JOINT_OFFSET_MARGIN = 0.3
 #: an offset is identifiable once a joint's mean sign of velocity is within this of zero
 REVERSAL = 0.8
+#: recent memories: a block's weight halves with every this many seconds of learning time
+#: (blocks of data) that follow it (friction that drifts: a gearbox warming up, wear); the
+#: cross-validation chooses among them and the whole history
+HALF_LIVES_S = (10.0, 30.0, 90.0)
+#: a recent memory serves where it cuts the chosen structure's CV score by this fraction
+RECENT_MARGIN = 0.3
 
 
 def friction_columns(v: np.ndarray) -> np.ndarray:
@@ -71,84 +85,6 @@ def friction_columns(v: np.ndarray) -> np.ndarray:
     t = np.tanh(v / EPS_S)
     cols += [t * np.exp(-(v / vs) ** 2) for vs in STRIBECK_VS]
     return np.stack(cols, axis=-1)
-
-
-def _nonnegative_part(G: np.ndarray, b: np.ndarray, bounded: np.ndarray) -> np.ndarray:
-    """
-    Minimize ``x^T G x / 2 - b^T x`` with ``x[bounded] >= 0``, the rest free; G (P, P) PD.
-
-    The free variables are eliminated (their optimum given the bounded ones, a Schur
-    complement), and what remains is a non-negative least-squares problem in the bounded ones
-    alone (``scipy.optimize.nnls``, Lawson-Hanson): a few ms where a bounded solver over every
-    column (a potential basis of ~100 columns) took a quarter of a second per fit.
-    """
-    c, f = np.flatnonzero(bounded), np.flatnonzero(~bounded)
-    x = np.zeros(b.size)
-    if f.size:
-        cf = cho_factor(G[np.ix_(f, f)])
-        W = cho_solve(cf, G[np.ix_(f, c)])                      # G_ff^-1 G_fc
-        S = G[np.ix_(c, c)] - G[np.ix_(c, f)] @ W
-        r = b[c] - W.T @ b[f]
-    else:
-        S, r = G[np.ix_(c, c)], b[c]
-    L = cholesky((S + S.T) / 2.0, lower=True)
-    x[c] = nnls(L.T, solve_triangular(L, r, lower=True), maxiter=50 * c.size)[0]
-    if f.size:
-        x[f] = cho_solve(cf, b[f] - G[np.ix_(f, c)] @ x[c])
-    return x
-
-
-class _Stats:
-    """Per-joint sufficient statistics over local columns [friction F, offset 1, correction C]."""
-
-    def __init__(self, N: int, L: int):
-        self.Gt = np.zeros((N, L, L))       # training columns
-        self.bt = np.zeros((N, L))
-        self.Gd = np.zeros((N, L, L))       # applied columns (scoring)
-        self.bd = np.zeros((N, L))
-        self.yy = np.zeros(N)
-        self.sy = np.zeros(N)
-        self.n = 0
-
-    def add_rows(self, At: np.ndarray, Ad: np.ndarray, y: np.ndarray) -> None:
-        """Add k samples: At, Ad (k, N, L), y (k, N)."""
-        # batched matrix products per joint (BLAS): einsum's loops took 7 ms per 64 rows
-        y3 = y.T[:, :, None]                                  # (N, k, 1)
-        AtT = At.transpose(1, 2, 0)                           # (N, L, k)
-        self.Gt += AtT @ At.transpose(1, 0, 2)
-        self.bt += (AtT @ y3)[..., 0]
-        if Ad is At:
-            self.Gd, self.bd = self.Gt, self.bt
-        else:
-            if self.Gd is self.Gt:
-                self.Gd, self.bd = self.Gt.copy(), self.bt.copy()
-            AdT = Ad.transpose(1, 2, 0)
-            self.Gd += AdT @ Ad.transpose(1, 0, 2)
-            self.bd += (AdT @ y3)[..., 0]
-        self.yy += np.einsum('kn,kn->n', y, y)
-        self.sy += y.sum(axis=0)
-        self.n += y.shape[0]
-
-    def __iadd__(self, o: '_Stats') -> '_Stats':
-        shared = self.Gd is self.Gt
-        self.Gt += o.Gt
-        self.bt += o.bt
-        if not shared:
-            self.Gd += o.Gd
-            self.bd += o.bd
-        self.yy += o.yy
-        self.sy += o.sy
-        self.n += o.n
-        return self
-
-    def copy(self) -> '_Stats':
-        c = copy.copy(self)
-        c.Gt, c.bt, c.yy, c.sy = self.Gt.copy(), self.bt.copy(), self.yy.copy(), self.sy.copy()
-        if self.Gd is self.Gt:
-            c.Gd, c.bd = c.Gt, c.bt
-        else:
-            c.Gd, c.bd = self.Gd.copy(), self.bd.copy()
-        return c
 
 
 @dataclass
@@ -172,6 +108,7 @@ class ParametricFit:
     basis: object = None
     scores: dict = field(default_factory=dict)
     samples: int = 0
+    memory: str = 'all'
 
     def label(self) -> str:
         on = np.flatnonzero(np.broadcast_to(np.asarray(self.offsets, bool), self.bias.shape))
@@ -179,6 +116,8 @@ class ParametricFit:
                  on.size == self.bias.size else 'offsets on ' + ' '.join(str(j) for j in on)]
         if self.basis is not None:
             parts.append('correction' if self.conservative else 'no correction')
+        if self.memory != 'all':
+            parts.append(f'{self.memory} memory')
         return ', '.join(parts)
 
     def friction_mean(self):
@@ -227,9 +166,10 @@ class LongHistory:
         self.L = F + 1 + self.C
         self.default_family = default_family
         self.offsets = bool(offsets)
-        self._older = _Stats(self.N, self.L)
+        self._older = Stats(self.N, self.L)
+        self._recent = [Stats(self.N, self.L) for _ in HALF_LIVES_S]   # the older, decayed
         self._blocks: deque = deque()
-        self._cur = _Stats(self.N, self.L)
+        self._cur = Stats(self.N, self.L)
         self._rows: List[tuple] = []
         self._block_t0: Optional[float] = None
         P = self.N * F + self.N + self.C
@@ -280,8 +220,12 @@ class LongHistory:
         if self._cur.n:
             self._blocks.append(self._cur)
             while len(self._blocks) > FOLDS:
-                self._older += self._blocks.popleft()
-        self._cur = _Stats(self.N, self.L)
+                b = self._blocks.popleft()
+                self._older += b
+                for r, h in zip(self._recent, HALF_LIVES_S):
+                    r.decay(0.5 ** (BLOCK_S / h))
+                    r += b
+        self._cur = Stats(self.N, self.L)
         self._block_t0 = stamp
 
     def copy(self) -> 'LongHistory':
@@ -289,14 +233,16 @@ class LongHistory:
         self._flush()
         c = copy.copy(self)
         c._older = self._older.copy()
+        c._recent = [r.copy() for r in self._recent]
         c._blocks = deque(b.copy() for b in self._blocks)
         c._cur = self._cur.copy()
         c._rows = []
         return c
 
     # ------------------------------------------------------------------ fitting
-    def _total(self, blocks, with_current: bool) -> _Stats:
-        t = self._older.copy()
+    def _total(self, blocks, with_current: bool, memory: int = -1) -> Stats:
+        """Add ``blocks`` to the whole history (memory -1) or to a recent one (its index)."""
+        t = (self._older if memory < 0 else self._recent[memory]).copy()
         for b in blocks:
             t += b
         if with_current:
@@ -304,7 +250,7 @@ class LongHistory:
             t += self._cur
         return t
 
-    def _global(self, st: _Stats) -> Tuple[np.ndarray, np.ndarray]:
+    def _global(self, st: Stats) -> Tuple[np.ndarray, np.ndarray]:
         G = np.zeros((self.P, self.P))
         b = np.zeros(self.P)
         for j, idx in enumerate(self._idx):
@@ -356,11 +302,11 @@ class LongHistory:
         bounded = idx < self.N * F
         x = cho_solve(cho_factor(Gs), b[idx])
         if np.any(x[bounded] < 0.0):
-            x = _nonnegative_part(Gs, b[idx], bounded)
+            x = nonnegative_part(Gs, b[idx], bounded)
         theta[idx] = x
         return theta
 
-    def _sse(self, st: _Stats, theta: np.ndarray) -> np.ndarray:
+    def _sse(self, st: Stats, theta: np.ndarray) -> np.ndarray:
         """Squared error per joint of ``theta`` on ``st`` with the applied columns, (N,)."""
         out = np.empty(self.N)
         for j, idx in enumerate(self._idx):
@@ -379,13 +325,14 @@ class LongHistory:
         total = self._total(self._blocks, True)
         scores = {}
         blocks = list(self._blocks)
-        folds = []
+        folds, at = [], []
         for i in range(len(blocks)):
             train = self._total(blocks[:i], False)
             # a fold trained on a short start extrapolates the pose parts wildly: score only
             # on blocks with at least MIN_TRAIN_FRACTION of the history before them
             if train.n >= MIN_TRAIN_FRACTION * total.n and blocks[i].n:
                 folds.append((self._global(train), train.n, blocks[i]))
+                at.append(i)
         if folds and total.n > 1:
             var = np.maximum(total.yy / total.n - (total.sy / total.n) ** 2, 1e-12)
             n_test = sum(b.n for *_, b in folds)
@@ -399,9 +346,39 @@ class LongHistory:
                 scores[cand] = float(np.mean(per_joint[cand]))
             best = self._choose(scores)
             best = (best[0], self._joint_offsets(per_joint, best), best[2])
+            k = self._memory(best, folds, at, n_test * var)
+            if k >= 0:
+                return self._fit(self._total(self._blocks, True, k), best, scores, total.n,
+                                 f'{HALF_LIVES_S[k]:g} s')
         else:
             best = (self.default_family if total.n else 'none', False, bool(self.C))
         return self._fit(total, best, scores)
+
+    def _memory(self, best: tuple, folds: list, at: list, scale: np.ndarray) -> int:
+        """
+        Return the recent memory that predicts the CV blocks clearly best, -1 for all of it.
+
+        The chosen structure ``best``, fitted on everything before each scored block, on the
+        whole history and on each recent one (``HALF_LIVES_S``): the recent memory with the
+        lowest mean score serves only where that score is below ``1 - RECENT_MARGIN`` times the
+        whole history's (friction that drifts). scale (N,): per joint, the scored samples
+        times the residual's variance.
+        """
+        if self._recent[0].n >= 0.999 * self._older.n:
+            return -1                           # nothing forgotten yet (the shortest forgets most)
+        m = self._mask(*best)
+        blocks = list(self._blocks)
+
+        def score(memory: int) -> float:
+            sse = np.zeros(self.N)
+            for (_, _, test), i in zip(folds, at):
+                r = self._total(blocks[:i], False, memory)
+                sse += self._sse(test, self._solve(*self._global(r), m, r.n))
+            return float(np.mean(sse / scale))
+
+        recent = [score(k) for k in range(len(HALF_LIVES_S))]
+        k = int(np.argmin(recent))
+        return k if recent[k] < (1.0 - RECENT_MARGIN) * score(-1) else -1
 
     def _choose(self, scores: dict) -> tuple:
         """
@@ -439,7 +416,8 @@ class LongHistory:
         """Fit one given structure on the whole history."""
         return self._fit(self._total(self._blocks, True), (family, offsets, conservative), {})
 
-    def _fit(self, total: _Stats, cand: tuple, scores: dict) -> ParametricFit:
+    def _fit(self, total: Stats, cand: tuple, scores: dict, samples=None,
+             memory: str = 'all') -> ParametricFit:
         G, b = self._global(total)
         theta = self._solve(G, b, self._mask(*cand), total.n)
         N = self.N
@@ -448,4 +426,5 @@ class LongHistory:
         return ParametricFit(cand[0], offs, bool(cand[2]),
                              np.maximum(theta[:N * F].reshape(N, F), 0.0),
                              theta[N * F:N * F + N].copy(), theta[N * F + N:].copy(),
-                             self.basis, scores, total.n)
+                             self.basis, scores, total.n if samples is None else samples,
+                             memory)

@@ -168,3 +168,41 @@ def test_real_panda_selection_beats_friction_alone_held_out():
     chosen = nmse(sel)
     assert sel.conservative and not np.any(sel.offsets), sel.label()
     assert chosen.mean() < 0.9 * alone.mean(), (chosen, alone)
+
+
+def _drifting(rise, seconds=300.0, seed=3):
+    """Two joints, Coulomb + viscous friction scaled by 1 -> 1 + rise over the last 2/3, 100 Hz."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(seconds * 100)) * 0.01
+    qd = np.stack([0.7 * np.sin(0.21 * t) + 0.4 * np.sin(0.53 * t + 1.0),
+                   0.5 * np.sin(0.37 * t + 2.0) + 0.3 * np.sin(0.11 * t)], axis=1)
+    s = 1.0 + rise * np.clip((t - seconds / 3) / (seconds / 2), 0.0, 1.0)
+    friction = s[:, None] * (np.array([2.0, 1.0]) * np.tanh(qd / 0.02) + np.array([3.0, 1.5]) * qd)
+    return t, qd, friction, friction + 0.02 * rng.normal(size=qd.shape)
+
+
+def test_drifting_friction_is_fitted_from_the_recent_memory_and_steady_friction_from_all():
+    # a gearbox warming up: +40 % Coulomb and viscous friction; the whole history is biased
+    # towards the past, the recent memory tracks it (forward CV on the last blocks decides)
+    t, qd, friction, r = _drifting(0.4)
+    hist = LongHistory(2, None, offsets=False)
+    for i in range(t.size):
+        hist.push(t[i], None, qd[i], None, r[i])
+    fit = hist.select()
+    last = t > t[-1] - 20.0
+    err = np.mean((fit.friction_mean().force(qd[last]) - friction[last]) ** 2) / \
+        np.var(friction[last])
+    whole = hist.fit(fit.family, False, False)
+    err_whole = np.mean((whole.friction_mean().force(qd[last]) - friction[last]) ** 2) / \
+        np.var(friction[last])
+    assert fit.memory != 'all' and 'memory' in fit.label(), fit.label()
+    assert err < 0.01 and err < 0.25 * err_whole, (err, err_whole)
+    # the same motion without the drift: every sample counts (nothing is forgotten)
+    t, qd, friction, r = _drifting(0.0)
+    hist = LongHistory(2, None, offsets=False)
+    for i in range(t.size):
+        hist.push(t[i], None, qd[i], None, r[i])
+    fit = hist.select()
+    assert fit.memory == 'all' and 'memory' not in fit.label(), fit.label()
+    copy = hist.copy()
+    assert copy.select().memory == 'all'
