@@ -87,6 +87,25 @@ def test_replay_with_the_default_prior_prints_no_python_warning(short_bag, tmp_p
         [str(w.message) for w in recwarn]
     s = json.loads((out / 'summary.json').read_text())
     assert 'friction_curves.png' in s['plots'] and (out / 'friction_curves.png').stat().st_size
+    # the summary says what the prior is and which elements of D each joint keeps
+    assert s['structure'].split(',')[0] in ('none', 'viscous', 'friction', 'friction+stribeck')
+    el = s['elements']
+    assert set(el) == {'chosen', 'heldout_error', 'over_parametric'}
+    for per in el['over_parametric'].values():
+        assert set(per) <= set(NAMES) and all(v is None or v > 0 for v in per.values())
+
+
+def test_the_elements_report_gives_each_choice_over_the_parametric_part():
+    from dgp_ros.apps.replay_report import elements_report
+    diag = {'elements': 'own: 0, none: 1',
+            'elements_scores': {'none': [0.2, 0.5], 'own': [0.1, 0.6], 'all': [0.3, 0.0]}}
+    r = elements_report(diag, ['a', 'b'])
+    assert r['chosen'] == 'own: 0, none: 1'
+    assert r['over_parametric'] == {'own': {'a': pytest.approx(0.5), 'b': pytest.approx(1.2)},
+                                    'all': {'a': pytest.approx(1.5), 'b': 0.0}}
+    assert elements_report({'elements': '', 'elements_scores': {}}, ['a'])['over_parametric'] == {}
+    assert elements_report({'elements_scores': {'none': [0.0], 'own': [0.1]}},
+                           ['a'])['over_parametric'] == {'own': {'a': None}}
 
 
 def test_urdf_without_a_urdf_is_refused_offline(short_bag, tmp_path, capsys):

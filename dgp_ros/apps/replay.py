@@ -289,6 +289,18 @@ def _friction_curves(out: Path, est, one_step, model_file: Optional[str]):
                            np.array(one_step.truth), np.array(one_step.q), est.names, conf)
 
 
+def _structure_line(s: dict) -> str:
+    """'structure ...; elements ... (own over the parametric part, held out: j 0.93x); ' or ''."""
+    out = f'structure {s["structure"]}; ' if s.get('structure') else ''
+    el = s.get('elements') or {}
+    if el.get('chosen'):
+        gains = '; '.join(f'{c} over the parametric part, held out: ' + ', '.join(
+            f'{j} {v:.2f}x' for j, v in per.items() if v is not None)
+            for c, per in el.get('over_parametric', {}).items())
+        out += f'elements {el["chosen"]}' + (f' ({gains})' if gains else '') + '; '
+    return out
+
+
 def _nothing_estimated(info, summary) -> str:
     rej = {k: v for k, v in summary['rejected'].items() if v}
     why = ', '.join(f'{v} {k}' for k, v in sorted(rej.items(), key=lambda kv: -kv[1]))
@@ -393,6 +405,7 @@ def main(argv=None) -> int:
         print(f'{prog}: {s["estimates"]}/{s["messages"]} messages on {s["topic"]}; NMSE one '
               f'step ahead (each {what} predicted before it was learned, against the '
               f'{s["nmse_target"]}): {nm}; after learning it (tracking, not accuracy): {after}; '
+              f'{_structure_line(s)}'
               f'P_hat<0 fraction {s["negative_power_fraction"]}; refits ok {s["refits"]["ok"]} '
               f'failed {s["refits"]["failed"]}; rejected {s["rejected_total"]}; '
               f'wall {wall:.2f} s -> {a.out}', file=sys.stderr)

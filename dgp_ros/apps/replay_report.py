@@ -16,7 +16,9 @@ The files ``dgp-replay --out DIR`` writes to ``DIR``:
   (``nmse_after_learning``: a tracking error, not an accuracy; see ``OneStep``), RMSE (and RMSE /
   mass with ``--mass``), median absolute error, count of huge/non-finite estimates,
   negative-power fractions (estimate and measurement), refits, timings,
-  rejected-message counts by reason, certificate at the end, the configuration used.
+  rejected-message counts by reason, certificate at the end, the configuration used, the
+  structure of the parametric part (``structure``) and which elements of D each joint keeps
+  with what they add over the parametric part, held out (``elements``, :func:`elements_report`).
 - ``estimate_vs_measurement.png``, ``error.png`` (divided by the mass when given: m/s^2),
   ``power_hist.png`` (matplotlib, Agg backend); with inverse dynamics ``friction_curves.png``
   (``friction_plot``: per joint the learned residual against velocity, the saved model's curve,
@@ -33,8 +35,8 @@ import time
 
 import numpy as np
 
-__all__ = ['arrays_of', 'CsvWriter', 'CSV_FIXED', 'make_plots', 'OneStep', 'summarize',
-           'write_csv', 'write_summary']
+__all__ = ['arrays_of', 'CsvWriter', 'CSV_FIXED', 'elements_report', 'make_plots', 'OneStep',
+           'summarize', 'write_csv', 'write_summary']
 
 
 def _nmse(err, y):
@@ -231,6 +233,28 @@ def _final_certificate(est) -> dict:
             'stale': bool(cert.stale), 'correction_scale': float(cert.correction_scale)}
 
 
+def elements_report(diag: dict, names) -> dict:
+    """
+    Return which elements of D each joint keeps and, held out, what they add over the prior.
+
+    From the last hyper-parameter refit's choice (``gp.select``: blocked cross-validation over
+    the buffer, standardized MSE per joint and choice): ``chosen`` ('own: 0 1, none: 2'),
+    ``heldout_error`` (choice -> per joint) and ``over_parametric`` (choice -> joint -> that
+    choice's held-out error over the parametric part's alone, ``none``: below 1 the GP helps).
+    Empty before any such refit (``elements`` not 'auto', or a short run).
+    """
+    scores = diag.get('elements_scores') or {}
+    none = scores.get('none')
+    over = {}
+    if none:
+        for c, e in scores.items():
+            if c != 'none':
+                over[c] = {j: (e[i] / none[i] if none[i] > 0 else None)
+                           for i, j in enumerate(names) if i < min(len(e), len(none))}
+    return {'chosen': diag.get('elements') or '', 'heldout_error': dict(scores),
+            'over_parametric': over}
+
+
 def summarize(bag, estimates, est, info, names, mass=None) -> dict:
     """
     Return the content of ``summary.json`` (module docstring) as a JSON-safe dict.
@@ -291,6 +315,8 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
         'rejected_total': diag['rejected_total'] + info['undecodable'],
         'time_jumps_back': diag['time_jumps_back'],
         'passivity_fallbacks': diag['passivity_fallbacks'],
+        'structure': diag.get('structure') or '',
+        'elements': elements_report(diag, names),
         'certificate': _final_certificate(est),
         'status': {'level': diag['level'], 'message': diag['message']},
         'learned_negative_power_fraction': diag['negative_power_fraction'],
