@@ -42,11 +42,11 @@ import argparse
 import json
 import math
 import os
-import subprocess
 import sys
 import time
 import traceback
 
+from family_io import add_options, fmt, nmse, parse_set, per_out, tag_and_where, write
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -172,8 +172,6 @@ def flight(index: int, cache: str, log=print) -> dict:
 
 
 # ------------------------------------------------------------------------------ scoring
-def _nmse(p, r):
-    return ((p - r) ** 2).mean(axis=0) / r.var(axis=0)
 
 
 def _windows(P, T, t, width_s: float = 1.0):
@@ -217,7 +215,7 @@ def score(fl: dict) -> dict:
     starts, W = _windows(P, T, t)
     bad = [(float(s), [float(x) for x in w]) for s, w in zip(starts, W) if w.max() > BARS[
         'window_max']]
-    return {'early': _nmse(P[early], T[early]), 'whole': _nmse(P, T),
+    return {'early': nmse(P[early], T[early]), 'whole': nmse(P, T),
             'window_max': W.max(axis=0), 'window_at_s': starts[W.argmax(axis=0)],
             'windows': W, 'window_starts': starts, 'bad_windows': bad,
             'flight_s': float(t[-1] - t[0]), 'wall_s': wall,
@@ -234,30 +232,6 @@ def passes(r: dict) -> bool:
 
 
 # ------------------------------------------------------------------------------ report
-def fmt(x, digits: int = 2) -> str:
-    if x is None:
-        return '-'
-    x = float(x)
-    if not math.isfinite(x):
-        return str(x)
-    if x == 0:
-        return '0'
-    if 1e-2 <= abs(x) < 1e3:
-        return f'{x:.{digits + 1}g}'
-    return f'{x:.{digits - 1}e}'
-
-
-def per_out(v) -> str:
-    return ' / '.join(fmt(x) for x in v)
-
-
-def commit_of(module_file: str) -> str:
-    root = os.path.dirname(os.path.dirname(os.path.abspath(module_file)))
-    try:
-        return subprocess.run(['git', '-C', root, 'rev-parse', '--short', 'HEAD'],
-                              capture_output=True, text=True, check=True).stdout.strip()
-    except Exception:                                # noqa: BLE001
-        return '?'
 
 
 def _elements_at(course: list, t: float):
@@ -325,22 +299,6 @@ def report(results: list, tag: str, where: str, quick: bool, wall: float) -> str
     return '\n'.join(lines) + '\n'
 
 
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return None if not math.isfinite(float(x)) else float(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     ap.add_argument('--quick', action='store_true', help='the first 2 flights')
@@ -348,32 +306,15 @@ def main(argv=None) -> int:
     ap.add_argument('--simulate-only', action='store_true', help='fill the cache only')
     ap.add_argument('--keep-stalls', action='store_true',
                     help='probe: fly stalled draws to touch-down instead of drawing again')
-    ap.add_argument('--out', default=os.path.join(REPO, 'out', 'families'),
-                    help='where the .md and .json go (default: out/families)')
-    ap.add_argument('--section', action='store_true',
-                    help="also write the report into docs/BENCHMARKS.md (section 'a320_family')")
     ap.add_argument('--cache', default=CACHE)
-    ap.add_argument('--tag', default='')
-    ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE',
-                    help='an estimator parameter besides the defaults (diagnosis only; the '
-                         'value is read as JSON, else as text), e.g. --set elements=all')
+    add_options(ap, 'a320_family')
     a = ap.parse_args(argv)
     global KEEP_STALLS
     KEEP_STALLS = a.keep_stalls
-    for kv in a.set:
-        k, v = kv.split('=', 1)
-        try:
-            PARAMS[k] = json.loads(v)
-        except ValueError:
-            PARAMS[k] = v
+    parse_set(a.set, PARAMS)
     idx = ([int(x) for x in a.flights.split(',')] if a.flights else
            list(range(2 if a.quick else FLIGHTS)))
-    import dgp_ros
-    tag = a.tag or commit_of(dgp_ros.__file__) + ''.join(
-        f'_{k}-{v}' for k, v in sorted(PARAMS.items()))
-    where = os.path.dirname(dgp_ros.__file__)
-    if where.startswith(REPO + os.sep):
-        where = os.path.relpath(where, REPO)      # this checkout's: no machine path
+    tag, where = tag_and_where(a.tag, PARAMS)
     results = []
     t0 = time.perf_counter()
     for i in idx:
@@ -413,21 +354,9 @@ def main(argv=None) -> int:
     os.makedirs(a.out, exist_ok=True)
     out = os.path.join(a.out, f'a320_family_{tag}{"_quick" if a.quick else ""}'
                        f'{"_stalls" if KEEP_STALLS else ""}{"_" + a.flights if a.flights else ""}')
-    with open(out + '.json', 'w') as f:
-        json.dump(_jsonable({'tag': tag, 'dgp_ros': where, 'quick': a.quick, 'wall_s': wall,
-                             'bars': BARS, 'results': results}), f, indent=1)
-    md = report(results, tag, where, a.quick, wall)
-    with open(out + '.md', 'w') as f:
-        f.write(md)
-    print(md)
-    print(f'wrote {out}.md/.json')
-    if a.section:
-        sys.path.insert(0, HERE)
-        import common as C
-        title, rest = md.split('\n', 1)
-        body = C.header_lines(title.lstrip('# '), f'bench/{os.path.basename(__file__)}',
-                              a.quick, wall) + rest
-        print('wrote', C.write_section(os.path.join(REPO, 'docs'), 'a320_family', body))
+    write(out, {'tag': tag, 'dgp_ros': where, 'quick': a.quick, 'wall_s': wall, 'bars': BARS,
+                'results': results}, report(results, tag, where, a.quick, wall),
+          'a320_family' if a.section else None, a.quick, wall, __file__)
     return 0
 
 

@@ -45,18 +45,14 @@ dgp_ros). ``--quick``: 2 systems (2 and 3 axes), 40 s streams, last 10 s scored.
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import os
-import subprocess
 import sys
 import time
 import traceback
 
+from family_io import add_options, fmt, nmse, parse_set, per_out, tag_and_where, write
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-REPO = os.path.dirname(HERE)
 RATE_HZ = 100.0
 DURATION_S = 90.0
 LAST_S = 20.0
@@ -175,8 +171,6 @@ class System:
 
 
 # ------------------------------------------------------------------------------ scoring
-def _nmse(p, r):
-    return ((p - r) ** 2).mean(axis=0) / r.var(axis=0)
 
 
 def _windows(P, T, t, var, width_s: float = 1.0):
@@ -188,22 +182,6 @@ def _windows(P, T, t, var, width_s: float = 1.0):
             starts.append(w * width_s)
             out.append(((P[s] - T[s]) ** 2).mean(axis=0) / var)
     return np.array(starts), np.array(out)
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return None if not math.isfinite(float(x)) else float(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (np.bool_,)):
-        return bool(x)
-    return x
 
 
 def run_system(sysm: System, duration_s: float, last_s: float) -> dict:
@@ -260,14 +238,14 @@ def run_system(sysm: System, duration_s: float, last_s: float) -> dict:
         'duration_s': duration_s, 'last_s': last_s,
         'coupling_share': sysm.coupling_share(V), 'min_sym_eig': sysm.min_sym_eig(V[::10]),
         'measured_negative_power': int((np.einsum('ki,ki->k', V, Tn) < 0).sum()),
-        'step_noisy': _nmse(P[last], Tn[last]), 'step_true': _nmse(P[last], T[last]),
-        'step_noise_floor': _nmse(T[last], Tn[last]),
-        'step_whole_true': _nmse(P, T),
+        'step_noisy': nmse(P[last], Tn[last]), 'step_true': nmse(P[last], T[last]),
+        'step_noise_floor': nmse(T[last], Tn[last]),
+        'step_whole_true': nmse(P, T),
         'process_vs_predict_maxdiff': float(np.nanmax(np.abs(P2 - P) / scale)),
-        'box': _nmse(Pb, Tb),
-        'box_model': None if Pb_model is None else _nmse(Pb_model, Tb),
+        'box': nmse(Pb, Tb),
+        'box_model': None if Pb_model is None else nmse(Pb_model, Tb),
         'box_negative_power': int((np.einsum('ki,ki->k', Vb, Pb) < -1e-12).sum()),
-        'path': _nmse(Pc, Tc),
+        'path': nmse(Pc, Tc),
         'window_max': wmax, 'window_at_s': wat,
         'windows': W, 'window_starts': starts,
         'elements': d.get('elements'), 'elements_scores': d.get('elements_scores'),
@@ -280,30 +258,6 @@ def run_system(sysm: System, duration_s: float, last_s: float) -> dict:
 
 
 # ------------------------------------------------------------------------------ report
-def fmt(x, digits: int = 2) -> str:
-    if x is None:
-        return '-'
-    x = float(x)
-    if not math.isfinite(x):
-        return str(x)
-    if x == 0:
-        return '0'
-    if 1e-2 <= abs(x) < 1e3:
-        return f'{x:.{digits + 1}g}'
-    return f'{x:.{digits - 1}e}'
-
-
-def per_out(v) -> str:
-    return '-' if v is None else ' / '.join(fmt(x) for x in v)
-
-
-def commit_of(module_file: str) -> str:
-    root = os.path.dirname(os.path.dirname(os.path.abspath(module_file)))
-    try:
-        return subprocess.run(['git', '-C', root, 'rev-parse', '--short', 'HEAD'],
-                              capture_output=True, text=True, check=True).stdout.strip()
-    except Exception:                                # noqa: BLE001
-        return '?'
 
 
 def report(results: list, tag: str, where: str, quick: bool, wall: float) -> str:
@@ -340,27 +294,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--systems', default='', help='comma-separated names (default: all)')
-    ap.add_argument('--out', default=os.path.join(REPO, 'out', 'families'),
-                    help='where the .md and .json go (default: out/families)')
-    ap.add_argument('--section', action='store_true',
-                    help="also write the report into docs/BENCHMARKS.md (section 'dgp_family')")
-    ap.add_argument('--tag', default='')
-    ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE',
-                    help='an estimator parameter besides the defaults (diagnosis only; the '
-                         'value is read as JSON, else as text), e.g. --set elements=all')
+    add_options(ap, 'dgp_family')
     a = ap.parse_args(argv)
-    for kv in a.set:
-        k, v = kv.split('=', 1)
-        try:
-            PARAMS[k] = json.loads(v)
-        except ValueError:
-            PARAMS[k] = v
-    import dgp_ros
-    tag = a.tag or commit_of(dgp_ros.__file__) + ''.join(
-        f'_{k}-{v}' for k, v in sorted(PARAMS.items()))
-    where = os.path.dirname(dgp_ros.__file__)
-    if where.startswith(REPO + os.sep):
-        where = os.path.relpath(where, REPO)      # this checkout's: no machine path
+    parse_set(a.set, PARAMS)
+    tag, where = tag_and_where(a.tag, PARAMS)
     chosen = a.systems.split(',') if a.systems else (QUICK if a.quick else
                                                      [s[0] for s in SYSTEMS])
     duration, last = (40.0, 10.0) if a.quick else (DURATION_S, LAST_S)
@@ -384,21 +321,9 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - t0
     base = os.path.join(a.out, f'dgp_family_{tag}{"_quick" if a.quick else ""}'
                                f'{"_" + a.systems.replace(",", "-") if a.systems else ""}')
-    with open(base + '.json', 'w') as f:
-        json.dump(_jsonable({'tag': tag, 'dgp_ros': where, 'quick': a.quick, 'wall_s': wall,
-                             'results': results}), f, indent=1)
-    md = report(results, tag, where, a.quick, wall)
-    with open(base + '.md', 'w') as f:
-        f.write(md)
-    print(md)
-    print(f'wrote {base}.md/.json')
-    if a.section:
-        sys.path.insert(0, HERE)
-        import common as C
-        title, rest = md.split('\n', 1)
-        body = C.header_lines(title.lstrip('# '), f'bench/{os.path.basename(__file__)}',
-                              a.quick, wall) + rest
-        print('wrote', C.write_section(os.path.join(REPO, 'docs'), 'dgp_family', body))
+    write(base, {'tag': tag, 'dgp_ros': where, 'quick': a.quick, 'wall_s': wall,
+                 'results': results}, report(results, tag, where, a.quick, wall),
+          'dgp_family' if a.section else None, a.quick, wall, __file__)
     return 0
 
 
