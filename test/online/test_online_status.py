@@ -57,12 +57,18 @@ def test_a_stream_too_slow_for_the_filter_says_so_and_30_hz_trains():
     assert 'too slow' not in d['message'], d['message']
 
 
-def test_a_model_worse_than_its_parametric_part_is_named():
+def _two_joints_trained():
+    """Return an in-line estimator trained on 100 samples of two viscous joints, and its rng."""
     est = OnlineEstimator(EstimatorConfig(refit_mode='sync', min_samples=10, buffer_size=60))
     rng = np.random.default_rng(0)
     for i in range(100):
         q = rng.normal(size=2)
         est.process(0.01 * i, ['a', 'b'], q, 2.0 * q)
+    return est, rng
+
+
+def test_a_model_worse_than_its_parametric_part_is_named():
+    est, rng = _two_joints_trained()
     assert est.trained and 'worse than its parametric part' not in est.diagnostics()['message']
     # the one-step record of a model that misses joint b where its prior is right
     skill = Skill(2)
@@ -76,11 +82,7 @@ def test_a_model_worse_than_its_parametric_part_is_named():
 
 
 def test_a_model_worse_than_no_answer_is_named_and_dropped_within_a_second():
-    est = OnlineEstimator(EstimatorConfig(refit_mode='sync', min_samples=10, buffer_size=60))
-    rng = np.random.default_rng(0)
-    for i in range(100):
-        q = rng.normal(size=2)
-        est.process(0.01 * i, ['a', 'b'], q, 2.0 * q)
+    est, rng = _two_joints_trained()
     assert 'worse than no answer' not in est.diagnostics()['message']
     # the one-step record at 30 Hz of a model right for 10 s (no prior to fall back on), then
     # wrong on b by four times the force: its weight there is gone within a second (the
