@@ -371,9 +371,11 @@ class LongHistory:
 
         def score(memory: int) -> float:
             sse = np.zeros(self.N)
-            for (_, _, test), i in zip(folds, at):
-                r = self._total(blocks[:i], False, memory)
-                sse += self._sse(test, self._solve(*self._global(r), m, r.n))
+            for ((G, b), n, test), i in zip(folds, at):
+                if memory >= 0:                 # the whole history's is the fold's own
+                    r = self._total(blocks[:i], False, memory)
+                    (G, b), n = self._global(r), r.n
+                sse += self._sse(test, self._solve(G, b, m, n))
             return float(np.mean(sse / scale))
 
         recent = [score(k) for k in range(len(HALF_LIVES_S))]
