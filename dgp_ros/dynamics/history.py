@@ -43,6 +43,9 @@ from typing import List, Optional, Tuple
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
+from dgp_ros.gp.joint_element import ElementFit, M_BASIS
+
+from .element_track import ElementTrack
 from .statistics import nonnegative_part, Stats
 
 __all__ = ['LongHistory', 'ParametricFit', 'FRICTION_EPS', 'STRIBECK_VS', 'FAMILIES']
@@ -109,6 +112,7 @@ class ParametricFit:
     scores: dict = field(default_factory=dict)
     samples: int = 0
     memory: str = 'all'
+    element: Optional[ElementFit] = None
 
     def label(self) -> str:
         on = np.flatnonzero(np.broadcast_to(np.asarray(self.offsets, bool), self.bias.shape))
@@ -118,12 +122,15 @@ class ParametricFit:
             parts.append('correction' if self.conservative else 'no correction')
         if self.memory != 'all':
             parts.append(f'{self.memory} memory')
+        if self.element is not None and self.element.label():
+            parts.append(self.element.label())
         return ', '.join(parts)
 
     def friction_mean(self):
         """Return the friction as a frozen passive prior mean of the D-GP."""
         from dgp_ros.gp.means import BasisFrictionMean
-        return BasisFrictionMean(self.coef, FRICTION_EPS, EPS_S, STRIBECK_VS)
+        base = BasisFrictionMean(self.coef, FRICTION_EPS, EPS_S, STRIBECK_VS)
+        return base if self.element is None else self.element.mean(base)
 
     def train_correction(self, Yt: Optional[np.ndarray]) -> np.ndarray:
         """Return what the non-damping parts explain of samples with columns Yt (k, N, C)."""
@@ -164,12 +171,16 @@ class LongHistory:
         self.basis = basis
         self.C = 0 if basis is None else int(basis.C)
         self.L = F + 1 + self.C
+        #: the statistics' columns: the parametric ones, then the element's (module docstring)
+        self.Lx = self.L + M_BASIS
+        self.element = ElementTrack(self.N, self.Lx)
+        self._last_t: Optional[float] = None
         self.default_family = default_family
         self.offsets = bool(offsets)
-        self._older = Stats(self.N, self.L)
-        self._recent = [Stats(self.N, self.L) for _ in HALF_LIVES_S]   # the older, decayed
+        self._older = Stats(self.N, self.Lx)
+        self._recent = [Stats(self.N, self.Lx) for _ in HALF_LIVES_S]   # the older, decayed
         self._blocks: deque = deque()
-        self._cur = Stats(self.N, self.L)
+        self._cur = Stats(self.N, self.Lx)
         self._rows: List[tuple] = []
         self._block_t0: Optional[float] = None
         P = self.N * F + self.N + self.C
@@ -196,11 +207,12 @@ class LongHistory:
             Ad = At if Yd is Yt else np.concatenate([Ft, one, Yd], axis=1)
         else:
             At = Ad = np.concatenate([Ft, one], axis=1)
+        self._last_t = stamp
         if self._block_t0 is None:
             self._block_t0 = stamp
         elif not (0.0 <= stamp - self._block_t0 < BLOCK_S):
             self._close_block(stamp)
-        self._rows.append((At, Ad, np.asarray(r, float)))
+        self._rows.append((At, Ad, np.asarray(r, float), qd))
         self.samples += 1
         if len(self._rows) >= 64:
             self._flush()
@@ -209,15 +221,17 @@ class LongHistory:
     def _flush(self) -> None:
         if not self._rows:
             return
-        At = np.array([a for a, _, _ in self._rows])
-        Ad = At if self.basis is None else np.array([d for _, d, _ in self._rows])
-        y = np.array([r for _, _, r in self._rows])
-        self._cur.add_rows(At, Ad, y)
-        self._rows = []
+        rows, self._rows = self._rows, []
+        E = self.element.columns(np.array([v for *_, v in rows]), self._last_t)     # (k, N, M)
+        At = np.concatenate([np.array([a for a, *_ in rows]), E], axis=2)
+        same = all(d is a for a, d, *_ in rows)        # training columns are the applied ones
+        Ad = At if same else np.concatenate([np.array([d for _, d, *_ in rows]), E], axis=2)
+        self._cur.add_rows(At, Ad, np.array([r for _, _, r, _ in rows]))
 
     def _close_block(self, stamp: float) -> None:
         self._flush()
         if self._cur.n:
+            self.element.block_closed(self._cur)
             self._blocks.append(self._cur)
             while len(self._blocks) > FOLDS:
                 b = self._blocks.popleft()
@@ -225,7 +239,7 @@ class LongHistory:
                 for r, h in zip(self._recent, HALF_LIVES_S):
                     r.decay(0.5 ** (BLOCK_S / h))
                     r += b
-        self._cur = Stats(self.N, self.L)
+        self._cur = Stats(self.N, self.Lx)
         self._block_t0 = stamp
 
     def copy(self) -> 'LongHistory':
@@ -236,6 +250,7 @@ class LongHistory:
         c._recent = [r.copy() for r in self._recent]
         c._blocks = deque(b.copy() for b in self._blocks)
         c._cur = self._cur.copy()
+        c.element = self.element.copy()
         c._rows = []
         return c
 
@@ -253,9 +268,10 @@ class LongHistory:
     def _global(self, st: Stats) -> Tuple[np.ndarray, np.ndarray]:
         G = np.zeros((self.P, self.P))
         b = np.zeros(self.P)
+        L = self.L
         for j, idx in enumerate(self._idx):
-            G[np.ix_(idx, idx)] += st.Gt[j]
-            b[idx] += st.bt[j]
+            G[np.ix_(idx, idx)] += st.Gt[j][:L, :L]
+            b[idx] += st.bt[j][:L]
         return G, b
 
     def _mask(self, family: str, offsets, conservative: bool) -> np.ndarray:
@@ -311,7 +327,7 @@ class LongHistory:
         out = np.empty(self.N)
         for j, idx in enumerate(self._idx):
             t = theta[idx]
-            out[j] = st.yy[j] - 2.0 * t @ st.bd[j] + t @ st.Gd[j] @ t
+            out[j] = st.yy[j] - 2.0 * t @ st.bd[j][:self.L] + t @ st.Gd[j][:self.L, :self.L] @ t
         return np.maximum(out, 0.0)
 
     def candidates(self) -> List[tuple]:
@@ -348,8 +364,7 @@ class LongHistory:
             best = (best[0], self._joint_offsets(per_joint, best), best[2])
             k = self._memory(best, folds, at, n_test * var)
             if k >= 0:
-                return self._fit(self._total(self._blocks, True, k), best, scores, total.n,
-                                 f'{HALF_LIVES_S[k]:g} s')
+                return self._fit(self._total(self._blocks, True, k), best, scores, total.n, k)
         else:
             best = (self.default_family if total.n else 'none', False, bool(self.C))
         return self._fit(total, best, scores)
@@ -419,9 +434,11 @@ class LongHistory:
         return self._fit(self._total(self._blocks, True), (family, offsets, conservative), {})
 
     def _fit(self, total: Stats, cand: tuple, scores: dict, samples=None,
-             memory: str = 'all') -> ParametricFit:
+             memory: int = -1) -> ParametricFit:
+        """Fit ``cand`` on ``total`` (the whole history, or recent memory ``memory``)."""
         G, b = self._global(total)
-        theta = self._solve(G, b, self._mask(*cand), total.n)
+        mask = self._mask(*cand)
+        theta = self._solve(G, b, mask, total.n)
         N = self.N
         offs = np.broadcast_to(np.asarray(cand[1], bool), (N,)) & \
             (theta[N * F:N * F + N] != 0.0)
@@ -429,4 +446,27 @@ class LongHistory:
                              np.maximum(theta[:N * F].reshape(N, F), 0.0),
                              theta[N * F:N * F + N].copy(), theta[N * F + N:].copy(),
                              self.basis, scores, total.n if samples is None else samples,
-                             memory)
+                             'all' if memory < 0 else f'{HALF_LIVES_S[memory]:g} s',
+                             self._element(mask, theta, total, memory))
+
+    def _element(self, mask: np.ndarray, theta: np.ndarray, total: Stats,
+                 memory: int) -> Optional[ElementFit]:
+        """
+        Fit each joint's element on what the parametric part ``theta`` leaves (``element``).
+
+        Its cross-validation folds are the structure's (the newest blocks, each with at least
+        ``MIN_TRAIN_FRACTION`` of the history before it), each with the parametric part
+        ``mask`` refitted on what precedes the block, in the same memory.
+        """
+        if self.element.basis is None or total.n == 0:
+            return None
+        blocks = list(self._blocks)
+        n_all = self._total(blocks, True).n if memory >= 0 else total.n
+        folds = []
+        for i, block in enumerate(blocks):
+            whole = self._total(blocks[:i], False)
+            if whole.n >= MIN_TRAIN_FRACTION * n_all and block.n:
+                train = whole if memory < 0 else self._total(blocks[:i], False, memory)
+                th = self._solve(*self._global(train), mask, train.n)
+                folds.append((train, [th[idx] for idx in self._idx], block))
+        return self.element.fit(self.L, F, [theta[idx] for idx in self._idx], total, folds)

@@ -105,3 +105,24 @@ class Stats:
         else:
             c.Gd, c.bd = self.Gd.copy(), self.bd.copy()
         return c
+
+    # ------------------------------------------------------------------ the element's part
+    def element_train(self, j: int, theta: np.ndarray, L: int, cols: np.ndarray, offset: int):
+        """
+        Joint j's element equations on what ``theta`` leaves: ``ElementFold`` (no test part).
+
+        ``cols``: the element's columns (past the first ``L``, the parametric ones:
+        ``gp.joint_element``); column ``offset`` is the constant one, the element fit's
+        nuisance offset. theta : (L,) the joint's parametric coefficients (training columns).
+        """
+        from dgp_ros.gp.joint_element import ElementFold
+        G, b = self.Gt[j], self.bt[j]
+        idx = np.r_[cols, offset]
+        r = b[idx] - G[idx, :L] @ theta
+        return ElementFold(G[np.ix_(idx, idx)].copy(), r)
+
+    def element_test(self, j: int, theta: np.ndarray, L: int, cols: np.ndarray) -> tuple:
+        """Joint j's scoring part of a block: (PhiPhi, Phi y, y y) on what ``theta`` leaves."""
+        G, b = self.Gd[j], self.bd[j]
+        yy = self.yy[j] - 2.0 * theta @ b[:L] + theta @ G[:L, :L] @ theta
+        return G[np.ix_(cols, cols)].copy(), b[cols] - G[cols, :L] @ theta, max(float(yy), 0.0)

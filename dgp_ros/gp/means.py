@@ -26,7 +26,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 __all__ = ['PriorMean', 'ViscousMean', 'FrictionMean', 'BasisFrictionMean', 'ConstantMean',
-           'make_mean',
+           'make_mean', 'register_mean',
            'mean_from_dict', 'prior_mean_diag', 'PRIORS']
 
 PRIORS = ('viscous', 'friction', 'friction+stribeck')
@@ -425,6 +425,12 @@ def _nnls_with_bias(bases, Tau):
 
 _BY_NAME = {'viscous': ViscousMean, 'friction': FrictionMean, 'constant': ConstantMean,
             'friction_basis': BasisFrictionMean}
+
+
+def register_mean(cls) -> type:
+    """Make a :class:`PriorMean` subclass readable by :func:`mean_from_dict` (its ``name``)."""
+    _BY_NAME[cls.name] = cls
+    return cls
 
 
 def make_mean(prior: str, kind: str, bias: bool = False) -> PriorMean:

@@ -7,6 +7,7 @@ import pytest
 from dgp_ros.dynamics.conservative import Correction, PotentialBasis
 from dgp_ros.dynamics.history import FAMILIES, LongHistory
 from dgp_ros.gp import FullDGP, load_model
+from dgp_ros.gp.joint_element import JointElementMean
 from dgp_ros.gp.means import BasisFrictionMean
 from dgp_ros.online.selection import Buffer
 
@@ -94,7 +95,10 @@ def test_saved_model_keeps_prior_and_correction_and_predicts_the_residual(tmp_pa
     path = tmp_path / 'm.npz'
     m.save(path)
     m2 = load_model(path)
-    assert isinstance(m2.mean_, BasisFrictionMean)
+    # the frozen friction, with the elements the history learned beside it (if any)
+    assert type(m2.mean_) is type(fit.friction_mean())
+    base = m2.mean_.base if isinstance(m2.mean_, JointElementMean) else m2.mean_
+    assert isinstance(base, BasisFrictionMean)
     Q, V = q[5::37], qd[5::37]
     np.testing.assert_allclose(m2.predict_residual(q=Q, qd=V), m.predict_residual(q=Q, qd=V))
     np.testing.assert_allclose(m2.predict(V, q=Q), m.predict(V))
