@@ -65,10 +65,12 @@ def _prior_code(spec: Spec) -> str:
     p = spec.prior
     coef, eps, vs = p['coef'], p['eps'], p['vs']
     K, S = int(p['K']), vs.shape[1]
+    el = p.get('element')
     out = _const('PC', coef)
     body = ['    double out = PC[i][0];']
-    if K or S:
+    if K or S or el is not None:
         body.insert(0, '    const double a = std::fabs(qd[i]);')
+    if K or S:
         out += _const('PE', eps)
         body += [f'    out += PC[i][{1 + k}] * tanh_over(a, PE[i][{k}]);' for k in range(K)]
     if S:
@@ -77,12 +79,49 @@ def _prior_code(spec: Spec) -> str:
         for s in range(S):
             body += [f'    {{ const double r = a / PV[i][{s}];',
                      f'      out += PC[i][{1 + K + s}] * t * std::exp(-(r * r)); }}']
-    out += TANH_OVER.substitute() if (K or S) else ''
-    arg = 'qd' if K or S else ''
+    tail = '    md[i] = out;'
+    if el is not None:
+        out += _element_code(el, spec.N)
+        tail = ('    const int e = ELEMENT_OF[i];\n'
+                '    if (e >= 0) out = std::max(out + element_diag(e, qd[i], a), 0.0);\n'
+                '    md[i] = out;')
+    out += TANH_OVER.substitute() if (K or S or el is not None) else ''
+    arg = 'qd' if K or S or el is not None else ''
     out += (f'inline void prior_diag(const double* {arg}, double* md) noexcept {{\n'
-            '  for (std::size_t i = 0; i < N; ++i) {\n' + '\n'.join(body) +
-            '\n    md[i] = out;\n  }\n}\n')
+            '  for (std::size_t i = 0; i < N; ++i) {\n' + '\n'.join(body) + '\n' + tail +
+            '\n  }\n}\n')
     return out
+
+
+def _element_code(el: dict, N: int) -> str:
+    """
+    ``element_diag(e, v, |v|)``: element e's part of ``m_d`` (gp/joint_element.py).
+
+    ``g(u) = sum_k w_k sin(k x)``, ``x = pi (u + 1) / 2``, ``u = v / sqrt(v^2 + vc^2)``, with
+    ``sin(k x)`` by the recurrence ``s_(k+1) = 2 cos(x) s_k - s_(k-1)`` (one sin and one cos),
+    times ``tanh(|v| / eps) / |v|``. The header declares ``tanh_over`` after this function's
+    caller needs it: both are inline and defined before ``prior_diag``.
+    """
+    W = np.asarray(el['W'], float)
+    n, M = W.shape
+    of = np.full(N, -1, int)
+    of[el['joints']] = np.arange(n)
+    return (_const('EW', W) + _const('EVC', el['vc']) + _const('EEPS', el['eps']) +
+            _const('ELEMENT_OF', of, 'int') +
+            'inline double tanh_over(double a, double eps) noexcept;\n'
+            'inline double element_diag(int e, double v, double a) noexcept {\n'
+            '  const double u = v / std::sqrt(v * v + EVC[e] * EVC[e]);\n'
+            '  const double x = 1.5707963267948966 * (u + 1.0);\n'
+            '  const double c2 = 2.0 * std::cos(x);\n'
+            '  double s0 = 0.0, s1 = std::sin(x), g = 0.0;\n'
+            f'  for (int k = 0; k < {M}; ++k) {{\n'
+            '    g += EW[e][k] * s1;\n'
+            '    const double s2 = c2 * s1 - s0;\n'
+            '    s0 = s1;\n'
+            '    s1 = s2;\n'
+            '  }\n'
+            '  return g * tanh_over(a, EEPS[e]);\n'
+            '}\n')
 
 
 def _weight_code(spec: Spec) -> str:
@@ -254,6 +293,7 @@ _HEADER = """\
 #ifndef {guard}
 #define {guard}
 
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>

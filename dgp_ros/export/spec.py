@@ -23,6 +23,7 @@ import numpy as np
 
 from dgp_ros.gp.blend import Grounds
 from dgp_ros.gp.certified import CertifiedPolicy
+from dgp_ros.gp.joint_element import JointElementMean
 from dgp_ros.gp.means import BasisFrictionMean, FrictionMean, ViscousMean
 from dgp_ros.gp.passivity import NonePolicy, PaperPolicy, policy_class, ProjectedPolicy
 from dgp_ros.gp.persistence import rebuild_correction, SavedCorrection
@@ -58,7 +59,8 @@ class Spec:
     The numbers of one frozen model (module docstring); every array in model units.
 
     prior : dict with ``coef`` (N, 1 + K + S), ``eps`` (N, K + 1) and ``vs`` (N, S): the
-    damping prior ``m_d(|qd|)`` (``gp.means``; viscous: K = S = 0).
+    damping prior ``m_d(|qd|)`` (``gp.means``; viscous: K = S = 0), and ``element`` where joints
+    carry a per-joint element (``gp.joint_element``; ``_prior``).
     weight : ('one',) | ('scale', s) | ('domain', s, olo, ilo - olo, ohi, ohi - ihi): the policy's
     correction weight. clip_delta : the eigenvalue floor's width, or None. project : the policy
     projects every answer onto ``qd . tau >= 0`` (``w_inv``: the projection's weights).
@@ -112,7 +114,20 @@ def prove_as_node(model) -> str:
 
 
 def _prior(mean, N: int) -> dict:
-    """Return the prior's damping ``m_d`` in the general form of ``means._friction_diag``."""
+    """
+    Return the prior's damping ``m_d`` in the general form of ``means._friction_diag``.
+
+    A prior with per-joint elements (``gp.joint_element.JointElementMean``) is its base's, with
+    ``element``: the joints that carry one, their weights (n, M), velocity scales and sign
+    smoothings (n,), added and floored at 0 as the mean does.
+    """
+    if isinstance(mean, JointElementMean):
+        out = _prior(mean.base, N)
+        j = np.asarray(mean.active, int)
+        b = mean.basis
+        out['element'] = {'joints': j, 'W': np.asarray(mean.W, float)[j],
+                          'vc': np.asarray(b.vc, float)[j], 'eps': np.asarray(b.eps, float)[j]}
+        return out
     if isinstance(mean, ViscousMean):
         return {'coef': np.asarray(mean.m_d, float).reshape(N, 1), 'eps': np.zeros((N, 1)),
                 'vs': np.zeros((N, 0)), 'K': 0}

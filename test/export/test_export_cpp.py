@@ -76,7 +76,24 @@ def _train(directory):
     m = FullDGP(prior='viscous', n_restarts=0).fit(f['q'][idx], f['tau'][idx])
     out['a320'] = str(d / 'a320.npz')
     m.save(out['a320'])
+    m = DiagDGP(prior=_element_prior(), n_restarts=0).fit(*_arm_data(coupling=0.1, seed=4))
+    m.grounds_ = _grounds(7, 5)
+    out['element_arm'] = str(d / 'element_arm.npz')
+    m.save(out['element_arm'])
     return out
+
+
+def _element_prior(N=7, seed=6):
+    """A frozen friction prior with per-joint elements on joints 0, 2 and 5 (gp.joint_element)."""
+    from dgp_ros.dynamics.history import EPS_S, F, FRICTION_EPS, STRIBECK_VS
+    from dgp_ros.gp.joint_element import JointElementMean, M_BASIS, VelocityBasis
+    from dgp_ros.gp.means import BasisFrictionMean
+    rng = np.random.default_rng(seed)
+    base = BasisFrictionMean(np.abs(rng.normal(0.0, 0.2, (N, F))), FRICTION_EPS, EPS_S,
+                             STRIBECK_VS)
+    W = np.zeros((N, M_BASIS))
+    W[[0, 2, 5]] = rng.normal(0.0, 0.3, (3, M_BASIS)) / np.arange(1, M_BASIS + 1)
+    return JointElementMean(base, VelocityBasis(rng.uniform(0.5, 2.0, N)), W)
 
 
 @pytest.fixture(scope='module')
@@ -131,9 +148,10 @@ def test_guarantees_as_proven(built):
     assert built['diag_arm'][0].correction['basis'] == 'regressor'
     assert built['a320'][0].guarantee == 'passive-on-domain'
     assert built['a320'][0].weight[0] == 'domain'
+    assert list(built['element_arm'][0].prior['element']['joints']) == [0, 2, 5]
 
 
-@pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320'])
+@pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320', 'element_arm'])
 @pytest.mark.parametrize('far', [False, True], ids=['inside', 'outside'])
 def test_equals_python_and_frozen_node(built, name, far):
     spec, model, exe, d, path = built[name]
