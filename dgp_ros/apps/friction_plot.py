@@ -6,9 +6,11 @@ learned (``effort - tau_rb``, less the learned conservative correction ``dV/dq(q
 rigid-body model, so that what is left is friction plus the joint's offset) against the joint's
 velocity; the learned model's curve there (its damping force with the other joints at rest,
 plus the offset, as the saved model answers: with its earned gains), its +-2 sigma band; its
-parametric part alone; a Coulomb + viscous + offset least-squares refit of the same samples
-(``baselines.fit_cv``); and in each title which elements of D the joint kept (``gp.select``)
-and the confidence it earned. numpy and matplotlib (Agg) only.
+parametric part alone, and with the element learned from every sample where the joint carries
+one (``gp.joint_element``); a Coulomb + viscous + offset least-squares refit of the same samples
+(``baselines.fit_cv``); and in each title which elements of D the joint kept (``gp.select``),
+the element from every sample with its error held out on the newest blocks over the parametric
+part's, and the confidence it earned. numpy and matplotlib (Agg) only.
 """
 from __future__ import annotations
 
@@ -22,7 +24,12 @@ __all__ = ['friction_curves']
 
 
 def _curves(model, qd: np.ndarray, j: int, k: int = 200):
-    """Return (v (k,), model, -+2 sigma (2, k), parametric part (k,)) along joint j's velocity."""
+    """
+    Return (v (k,), model, -+2 sigma (2, k), prior (k,), parametric part (k,)) along joint j.
+
+    The prior is the model's prior mean: its parametric part, with the element learned from
+    every sample where the joint carries one (``gp.joint_element``).
+    """
     lo, hi = float(np.min(qd[:, j])), float(np.max(qd[:, j]))
     pad = 0.1 * max(hi - lo, 1e-6)
     v = np.linspace(lo - pad, hi + pad, k)
@@ -34,12 +41,15 @@ def _curves(model, qd: np.ndarray, j: int, k: int = 200):
         if corr is not None else 0.0
     sd = np.sqrt(np.maximum(np.nan_to_num(var[:, j]), 0.0))
     band = np.vstack([tau[:, j] - 2.0 * sd, tau[:, j] + 2.0 * sd]) + off
-    return v, tau[:, j] + off, band, model.mean_.force(V)[:, j] + off
+    mean = model.mean_
+    base = getattr(mean, 'base', mean)
+    return v, tau[:, j] + off, band, mean.force(V)[:, j] + off, base.force(V)[:, j] + off
 
 
 def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
                     q: Optional[np.ndarray] = None, names: Optional[Sequence[str]] = None,
-                    confidence: Optional[Sequence[float]] = None) -> Path:
+                    confidence: Optional[Sequence[float]] = None,
+                    element_scores: Optional[Sequence[Optional[float]]] = None) -> Path:
     """
     Write ``friction_curves.png`` (module docstring) to ``path``; return it.
 
@@ -57,12 +67,16 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
         Joint names (default q0, q1, ...).
     confidence : N floats, optional
         The confidence each joint earned (shown in its title).
+    element_scores : N floats or None, optional
+        Per joint the error of its element from every sample on the history's newest blocks
+        over the parametric part's alone (``joint_elements`` of /diagnostics; in its title).
 
     """
     import matplotlib
     matplotlib.use('Agg', force=True)
     import matplotlib.pyplot as plt
     from dgp_ros.dynamics.baselines import fit_cv, predict_cv
+    from dgp_ros.gp.joint_element import element_joints
     from dgp_ros.gp.select import row_choices
 
     qd, residual = np.atleast_2d(qd), np.atleast_2d(residual)
@@ -80,17 +94,26 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
     for j in range(N):
         ax = axes[j // cols, j % cols]
         ax.plot(qd[:, j], y[:, j], '.', ms=2, color='0.6', alpha=0.5, label='learned residual')
-        v, tau, band, prior = _curves(model, qd, j)
+        v, tau, band, prior, param = _curves(model, qd, j)
         ax.fill_between(v, band[0], band[1], color='C0', alpha=0.15, lw=0, label='model ±2σ')
         ax.plot(v, tau, color='C0', lw=1.6, label='learned model')
-        ax.plot(v, prior, color='C2', lw=1.0, ls='--', label='its parametric part')
+        ax.plot(v, param, color='C2', lw=1.0, ls='--', label='its parametric part')
+        has_element = j in element_joints(model.mean_)
+        if has_element:
+            ax.plot(v, prior, color='C1', lw=1.2, ls='-.',
+                    label='parametric + element from every sample')
         if len(qd) >= 3:
             cv = fit_cv(qd[:, j], y[:, j])
             ax.plot(v, predict_cv(cv, v) + cv['b'], color='C3', lw=1.0, ls=':',
                     label='Coulomb + viscous + offset refit')
         c = '' if confidence is None or confidence[j] is None else \
             f', confidence {float(confidence[j]):.2f}'
-        ax.set_title(f'{names[j]}: elements {choice[j]}{c}', fontsize=9)
+        e = ''
+        if has_element:
+            sc = None if element_scores is None else element_scores[j]
+            e = ', element from every sample' + ('' if sc is None else
+                                                 f' ({float(sc):.2f}x held out)')
+        ax.set_title(f'{names[j]}: elements {choice[j]}{e}{c}', fontsize=9)
         ax.set_xlabel('velocity [rad/s]', fontsize=8)
         ax.set_ylabel('[N m]', fontsize=8)
         ax.grid(alpha=0.3)

@@ -285,13 +285,26 @@ def _friction_curves(out: Path, est, one_step, model_file: Optional[str]):
     with tempfile.TemporaryDirectory() as tmp:
         model = load_model(model_file or est.save(str(Path(tmp) / 'model.npz')))
     conf = (getattr(model, 'grounds_', None) or {}).get('confidence')
+    scores = (est.diagnostics().get('joint_elements') or {}).get('newest_blocks')
     return friction_curves(out / 'friction_curves.png', model, np.array(one_step.qd),
-                           np.array(one_step.truth), np.array(one_step.q), est.names, conf)
+                           np.array(one_step.truth), np.array(one_step.q), est.names, conf,
+                           scores)
 
 
 def _structure_line(s: dict) -> str:
-    """'structure ...; elements ... (own over the parametric part, held out: j 0.93x); ' or ''."""
+    """
+    Return 'structure ...; elements ... (own over the parametric part, held out: j 0.93x); '.
+
+    With the joints that carry an element from every sample and its held-out error ratio;
+    '' when there is nothing to say.
+    """
     out = f'structure {s["structure"]}; ' if s.get('structure') else ''
+    je = s.get('joint_elements') or {}
+    if je.get('on'):
+        nb = je.get('newest_blocks') or []
+        out += 'elements from every sample on ' + ', '.join(
+            f'{j} ({nb[j]:.2f}x)' if j < len(nb) and nb[j] is not None else str(j)
+            for j in je['on']) + ' (held out on the newest blocks, over the parametric part); '
     el = s.get('elements') or {}
     if el.get('chosen'):
         gains = '; '.join(f'{c} over the parametric part, held out: ' + ', '.join(

@@ -316,6 +316,7 @@ def summarize(bag, estimates, est, info, names, mass=None) -> dict:
         'time_jumps_back': diag['time_jumps_back'],
         'passivity_fallbacks': diag['passivity_fallbacks'],
         'structure': diag.get('structure') or '',
+        'joint_elements': diag.get('joint_elements') or {},
         'elements': elements_report(diag, names),
         'certificate': _final_certificate(est),
         'status': {'level': diag['level'], 'message': diag['message']},

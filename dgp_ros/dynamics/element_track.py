@@ -42,16 +42,19 @@ class ElementTrack:
     """
     The element's state in a long history (module docstring).
 
-    N : joints; Lx : the statistics' columns (the parametric ones, then the element's M).
+    N : joints; Lx : the statistics' columns (the parametric ones, then the element's M);
+    M : the element's columns per joint (0: no element).
     """
 
-    def __init__(self, N: int, Lx: int):
-        self.M = M_BASIS
+    def __init__(self, N: int, Lx: int, M: int = M_BASIS):
+        self.M = int(M)
         self.basis: Optional[VelocityBasis] = None
         self.vmax: Optional[np.ndarray] = None         # the largest speed of each joint
         self.t0: Optional[float] = None                # the first sample's stamp
         self.halves = [Stats(N, Lx), Stats(N, Lx)]
+        self.half_samples = [0, 0]                     # samples with the element's columns
         self.closed = 0                                # history blocks closed so far
+        self._block_samples = 0                        # ... in the block not closed yet
 
     def columns(self, V: np.ndarray, stamp: float) -> np.ndarray:
         """Return the element's columns of velocities V (k, N) learned by ``stamp``: (k, N, M)."""
@@ -60,20 +63,25 @@ class ElementTrack:
         if self.t0 is None:
             self.t0 = stamp
         if self.basis is None:
-            if stamp - self.t0 < START_S:
+            if not self.M or stamp - self.t0 < START_S:
                 return np.zeros(V.shape + (self.M,))
             self.basis = VelocityBasis.for_velocities(HEADROOM * self.vmax[None], self.M)
+        self._block_samples += V.shape[0]
         return self.basis.columns(V)
 
     def block_closed(self, block: Stats) -> None:
         """Add a closed history block to its half of the run."""
-        self.halves[(self.closed // EPOCH_BLOCKS) % 2] += block
+        half = (self.closed // EPOCH_BLOCKS) % 2
+        self.halves[half] += block
+        self.half_samples[half] += self._block_samples
+        self._block_samples = 0
         self.closed += 1
 
     def copy(self) -> 'ElementTrack':
         c = ElementTrack.__new__(ElementTrack)
         c.__dict__.update(self.__dict__)
         c.halves = [h.copy() for h in self.halves]
+        c.half_samples = list(self.half_samples)
         return c
 
     def fit(self, L: int, offset: int, thetas: Sequence[np.ndarray], total: Stats,
@@ -99,4 +107,4 @@ class ElementTrack:
         full = [total.element_train(j, thetas[j], L, cols, offset) for j in range(N)]
         halves = [[h.element_train(j, thetas[j], L, cols, offset) for h in self.halves]
                   for j in range(N)]
-        return fit_elements(self.basis, full, cv, halves)
+        return fit_elements(self.basis, full, cv, halves, self.half_samples)

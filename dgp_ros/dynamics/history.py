@@ -162,18 +162,21 @@ class LongHistory:
     offsets : bool
         Whether offsets are a candidate. Without a rigid-body model the effort *is* the damping
         force (an aircraft's aerodynamic force): there is no offset to set apart.
+    elements : bool
+        Whether each joint may carry an element of D learned from every sample
+        (:mod:`~dgp_ros.dynamics.element_track`).
 
     """
 
     def __init__(self, N: int, basis=None, default_family: str = 'friction',
-                 offsets: bool = True):
+                 offsets: bool = True, elements: bool = True):
         self.N = int(N)
         self.basis = basis
         self.C = 0 if basis is None else int(basis.C)
         self.L = F + 1 + self.C
         #: the statistics' columns: the parametric ones, then the element's (module docstring)
-        self.Lx = self.L + M_BASIS
-        self.element = ElementTrack(self.N, self.Lx)
+        self.Lx = self.L + (M_BASIS if elements else 0)
+        self.element = ElementTrack(self.N, self.Lx, self.Lx - self.L)
         self._last_t: Optional[float] = None
         self.default_family = default_family
         self.offsets = bool(offsets)

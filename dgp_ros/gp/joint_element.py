@@ -45,7 +45,7 @@ from scipy.linalg import cho_factor, cho_solve, LinAlgError
 from .means import mean_from_dict, PriorMean, register_mean
 
 __all__ = ['M_BASIS', 'LENGTHSCALES', 'RATIOS', 'VelocityBasis', 'ElementFold', 'ElementFit',
-           'fit_elements', 'JointElementMean']
+           'fit_elements', 'agreement', 'JointElementMean', 'element_joints']
 
 #: basis functions per joint
 M_BASIS = 32
@@ -57,9 +57,9 @@ RATIOS = (0.01, 0.1, 1.0, 10.0, 100.0)
 OFFSET_RATIO = 1e6
 #: the smoothing of the element's sign as a fraction of vc, and its ceiling (velocity units)
 EPS_FRACTION, EPS_MAX = 0.05, 0.02
-#: a joint keeps its element only where its two halves disagree by less than this
-#: (``agreement``; interleaved epochs of ``EPOCH_BLOCKS`` history blocks)
-AGREEMENT = 0.7
+#: a joint keeps its element only where the two halves of the run disagree on it by less
+#: than this (``agreement``), each half holding at least ``MIN_HALF_SAMPLES`` samples of it
+AGREEMENT, MIN_HALF_SAMPLES = 0.7, 150
 #: sub-intervals of u in which ``diag_inf`` bounds the element
 INF_CELLS = 512
 
@@ -144,7 +144,8 @@ class ElementFit:
     W : (N, M) weights (rows of joints without an element are zero); on : (N,) bools;
     scores : (N,) the best CV error over the parametric part's alone on the newest blocks
     (NaN: no folds yet); lengthscale, ratio : (N,) the hyper-parameters chosen; agreement :
-    (N,) how much two halves of the run disagree on the element (``agreement``).
+    (N,) how much two halves of the run disagree on the element (``agreement``; NaN while a
+    half holds too few samples).
     """
 
     def __init__(self, basis: VelocityBasis, W, on, scores, lengthscale, ratio, agreement=None):
@@ -161,6 +162,20 @@ class ElementFit:
         """Say which joints carry an element, e.g. ``'elements on 0 3'`` ('' for none)."""
         on = np.flatnonzero(self.on)
         return ('elements on ' + ' '.join(str(j) for j in on)) if on.size else ''
+
+    def summary(self) -> dict:
+        """
+        Return what decided each joint's element, for /diagnostics and replay summaries.
+
+        ``on``: the joints that carry one; ``newest_blocks``: per joint the element's error on
+        the history's newest blocks over the parametric part's alone (below 1 it helps);
+        ``halves_disagree``: how much two halves of the run disagree on it (served below
+        ``AGREEMENT``; None while a half holds too few samples).
+        """
+        def r(x):
+            return [None if not np.isfinite(v) else round(float(v), 4) for v in x]
+        return {'on': [int(j) for j in np.flatnonzero(self.on)],
+                'newest_blocks': r(self.scores), 'halves_disagree': r(self.agreement)}
 
     def mean(self, base: PriorMean) -> PriorMean:
         """Return ``base`` with the elements that are on (``base`` itself when none is)."""
@@ -187,15 +202,17 @@ def _prior(basis: VelocityBasis, lengthscale: float, ratio: float) -> np.ndarray
 def fit_elements(basis: VelocityBasis, full: Sequence[ElementFold],
                  folds: Sequence[Sequence[ElementFold]],
                  halves: Optional[Sequence[Sequence[ElementFold]]] = None,
-                 lengthscales=LENGTHSCALES, ratios=RATIOS) -> ElementFit:
+                 half_samples=(0, 0), lengthscales=LENGTHSCALES,
+                 ratios=RATIOS) -> ElementFit:
     """
     Choose and fit every joint's element (module docstring).
 
     full[j] : joint j's normal equations of all the (memory's) samples; folds[j] : its CV
     folds (forward-chaining: each trained before its scored block); halves[j] : the normal
-    equations of two interleaved halves of the run (``agreement``). Per joint the lengthscale
-    and ratio with the least summed test error are chosen; the joint keeps its element where
-    that error is below the parametric part's alone and the two halves agree on it.
+    equations of two interleaved halves of the run, holding ``half_samples`` samples of the
+    element each (``agreement``). Per joint the lengthscale and ratio with the least summed
+    test error are chosen; the joint keeps its element where that error is below the
+    parametric part's alone and the two halves, each large enough, agree on it.
     """
     N, M = basis.N, basis.M
     W = np.zeros((N, M))
@@ -218,7 +235,7 @@ def fit_elements(basis: VelocityBasis, full: Sequence[ElementFold],
         w = _solve(full[j].G, full[j].b, prior)
         if w is None or not np.all(np.isfinite(w)):
             continue
-        if halves is not None:
+        if halves is not None and min(half_samples) >= MIN_HALF_SAMPLES:
             agree[j] = agreement(full[j].G[:M, :M], w[:M], halves[j], prior)
         if scores[j] < 1.0 and agree[j] < AGREEMENT:
             W[j], on[j] = w[:M], True
@@ -228,7 +245,7 @@ def fit_elements(basis: VelocityBasis, full: Sequence[ElementFold],
 def agreement(G: np.ndarray, w: np.ndarray, halves: Sequence[ElementFold],
               prior: np.ndarray) -> float:
     """
-    How much two halves of the run disagree on an element, over the element itself.
+    Return how much two halves of the run disagree on an element, over the element itself.
 
     The element fitted on each half (at the same prior), their difference and the element
     fitted on all, each as an RMS over every sample (G: the element's Gram of all of them,

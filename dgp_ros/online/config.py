@@ -39,6 +39,10 @@ PARAMS = {p.name: p for p in (
               'correction of the rigid-body model; fitted on the whole history), or fixed: '
               'constant viscous diagonal (the paper), Coulomb + viscous, + Stribeck (fitted on '
               'the buffer)', choices=('auto',) + tuple(PRIORS)),
+    ParamSpec('history_elements', 'bool', True, 'prior auto only: each joint may carry an element '
+              'of D learned from every sample (a reduced-rank GP on its velocity, in the long '
+              'history), kept where it predicts the newest blocks better than the parametric '
+              'part and two halves of the run learn it alike; false: the parametric part alone'),
     ParamSpec('bias', 'bool', False, 'fixed prior only: learn a per-joint constant bias with the '
               'prior (reported apart from the damping force); auto decides itself'),
     ParamSpec('noise_floor', 'float', 1e-5, 'least noise variance the hyper-parameter fit may '
@@ -121,6 +125,7 @@ class EstimatorConfig:
     passivity: str = PARAMS['passivity'].default
     elements: str = PARAMS['elements'].default
     prior: str = PARAMS['prior'].default
+    history_elements: bool = PARAMS['history_elements'].default
     bias: bool = PARAMS['bias'].default
     noise_floor: float = PARAMS['noise_floor'].default
     buffer_size: int = PARAMS['buffer_size'].default

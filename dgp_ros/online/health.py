@@ -121,6 +121,7 @@ class LearnerHealth:
     recent_refits: deque = field(default_factory=lambda: deque(maxlen=RECENT_REFITS))  # ok?
     structure: str = ''               # prior='auto': the chosen friction / offsets / correction
     structure_scores: dict = field(default_factory=dict)   # its best CV scores
+    joint_elements: dict = field(default_factory=dict)     # the elements from every sample
     elements: str = ''                # elements='auto': each joint's elements of D (gp.select)
     elements_scores: dict = field(default_factory=dict)    # their CV errors per choice
     correction_basis: str = ''        # what the conservative correction is built from

@@ -45,9 +45,9 @@ from .window import Window
 __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
 
 #: structural fields: changing one at run time drops the model and refits
-STRUCTURAL = ('model', 'passivity', 'elements', 'prior', 'bias', 'buffer_size', 'buffer_policy',
-              'joints', 'operating_domain', 'inverse_dynamics', 'robot_description', 'urdf_file',
-              'accel_half_window_s')
+STRUCTURAL = ('model', 'passivity', 'elements', 'prior', 'history_elements', 'bias',
+              'buffer_size', 'buffer_policy', 'joints', 'operating_domain', 'inverse_dynamics',
+              'robot_description', 'urdf_file', 'accel_half_window_s')
 #: fields of the front end: changing one resets the learner
 FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints')
 

@@ -50,6 +50,7 @@ def learner_status(L) -> dict:
         'version': L.version,
         'structure': h.structure,
         'structure_scores': dict(h.structure_scores),
+        'joint_elements': dict(h.joint_elements),
         'elements': h.elements,
         'elements_scores': dict(h.elements_scores),
         'correction_basis': h.correction_basis,

@@ -51,6 +51,7 @@ class Structure:
         self._family = 'viscous' if config.model == 'ard' or config.prior == 'auto' else \
             config.prior
         self._bias = bool(config.bias)
+        self._elements = bool(config.history_elements)
         self._inverse = inverse
         self._health = health
         self._history: Optional[LongHistory] = None
@@ -76,7 +77,8 @@ class Structure:
                 except Exception as exc:        # noqa: BLE001 - offsets and friction still
                     h.last_refit_error = f'no conservative correction: {exc}'
             default = 'friction' if self._inverse is not None else 'viscous'
-            self._history = LongHistory(N, basis, default, offsets=self._inverse is not None)
+            self._history = LongHistory(N, basis, default, offsets=self._inverse is not None,
+                                        elements=self._elements)
             h.correction_basis = '' if basis is None else basis.source
         try:
             return self._history.push(stamp, q, qd, qdd, r)
@@ -106,6 +108,7 @@ class Structure:
         h.structure = fit.label()
         h.structure_scores = {', '.join(map(str, k)): round(v, 4)
                               for k, v in sorted(fit.scores.items(), key=lambda kv: kv[1])[:6]}
+        h.joint_elements = {} if fit.element is None else fit.element.summary()
         window.retarget(fit.train_correction)
 
     def _inflates(self, fit, window) -> bool:

@@ -9,7 +9,7 @@ from dgp_ros.gp.means import BasisFrictionMean, mean_from_dict
 
 def _mean(N=3, seed=0, scale=3.0, decay=0.0):
     """
-    A friction prior with random elements on joints 0 and 2 (large: their sum goes < 0).
+    Return a friction prior with random elements on joints 0 and 2 (large: the sum goes < 0).
 
     decay: the weights fall as ``k^-decay`` (a fitted element's do: the SE spectrum).
     """
