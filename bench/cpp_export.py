@@ -16,8 +16,10 @@ Models: the A320 (sim_bridge's approach, the ledger's flight, the whole of it), 
 (``../shared/data/panda_real``, t < 7.5 s, its identified model as ``python:panda_rb:tau_rb``:
 a model of the buffer's 200 samples with the URDF regressor correction of
 example-robot-data's panda; the node's defaults keep none of its 49 elements of D, so it is
-also exported with ``elements=all``, the paper's Full-D, all 49) and the real UR10
-(``../shared/data/ur10_real``, t < 10 s, ``python:ur10_rb:tau_rb``); a real log that is absent
+also exported with ``elements=all``, the paper's Full-D, all 49), the real UR10
+(``../shared/data/ur10_real``, t < 10 s, ``python:ur10_rb:tau_rb``: an element of D from every
+sample on its wrist 3) and the robot demo's simulated Panda after 8 task cycles (80 s: elements
+from every sample on several joints, ``gp.joint_element``); a real log that is absent
 is replaced by the simulated Panda of the robot demo (said in the table). Time per
 ``friction()`` call: the example program (``examples/cpp/friction_along_log.cpp``) on 2000
 samples of the model's own velocities, at ``-O2`` and ``-O2 -march=native`` with g++ (and
@@ -74,6 +76,19 @@ def learn(case: str, path: str, quick: bool) -> str:
         est = OnlineEstimator(EstimatorConfig(refit_mode='sync'))
         _stream(est, f['t'][:k], list(f['joint_names']), f['q'][:k], f['tau'][:k])
         label = f'A320, {f["t"][k - 1] - f["t"][0]:.0f} s of the approach'
+    elif case == 'simpanda':
+        # 8 task cycles of the robot demo's Panda: the elements of D from every sample on
+        from dgp_ros.dynamics import example_robot_urdf
+        from dgp_ros.dynamics.arm_stream import demo_arm
+        s = demo_arm('panda', 80.0, seed=0)
+        names = list(s['names'])
+        est = OnlineEstimator(EstimatorConfig(
+            refit_mode='sync', inverse_dynamics='urdf', joints=names,
+            urdf_file=example_robot_urdf('panda')))
+        est.set_outputs(stddev=False, damping=False)
+        _stream(est, s['t'], names, s['qd'], s['effort'], s['q'])
+        on = (est.diagnostics().get('joint_elements') or {}).get('on', [])
+        label = f'simulated Panda, 8 task cycles (elements from every sample on joints {on})'
     else:
         extra = {'elements': 'all'} if case.endswith('_full') else {}
         case = case.split('_')[0]
@@ -255,7 +270,8 @@ def main(argv=None) -> int:
         return 0
     res = []
     with tempfile.TemporaryDirectory() as d:
-        cases = ('a320', 'panda') if a.quick else ('a320', 'panda', 'panda_full', 'ur10')
+        cases = ('a320', 'panda') if a.quick else (
+            'a320', 'panda', 'panda_full', 'ur10', 'simpanda')
         for case in cases:
             res.append(run_case(case, a.quick, d))
     C.write_section(a.out, NAME, report(a, res, time.perf_counter() - t0))

@@ -17,6 +17,9 @@ the node's learner, deterministic) with the log's identified rigid-body model as
   grounds, plus the model's correction and offsets, at the message each learned residual sample
   belongs to, before it was learned) against those samples, NMSE per joint, beside answering
   zero (``zero``);
+* ``prior`` / ``parametric``: the saved model's prior (its parametric part with the elements of
+  D from every sample, ``gp.joint_element``) and its parametric part alone, held out the same
+  way; and, learned on the first third of the log only (``no_harm``), the same per joint;
 * ``negative_power``: published answers with ``qd . tau_hat < 0`` beyond rounding, and of the
   saved model at 40000 random velocities inside the learned box and 10x beyond it;
 * ``status``: the /diagnostics level and message at the end; ``wall_s``: the learning time.
@@ -37,6 +40,7 @@ import os
 import sys
 import tempfile
 import time
+from typing import Optional
 
 import numpy as np
 
@@ -166,7 +170,8 @@ def arm_case(log: dict, split_s=None, baselines: bool = True, **params) -> dict:
     Learn ``log`` on t < split and score it (module docstring); ``params``: besides defaults.
 
     Returns a dict with ``held``, ``cv``, ``sigmoid``, ``live``, ``zero`` (N,) NMSE, ``mean``,
-    ``parametric`` (the saved model's parametric part alone, held out), ``elements``,
+    ``parametric`` (the saved model's parametric part alone, held out), ``prior`` (with the
+    elements of D from every sample, ``gp.joint_element``: its prior mean), ``elements``,
     ``structure``, ``status``, ``negative_power``, ``saved_negative_power``, ``wall_s``,
     ``stream_s``, ``trained``.
     """
@@ -197,8 +202,11 @@ def arm_case(log: dict, split_s=None, baselines: bool = True, **params) -> dict:
         out['held'] = _nmse(model.predict_residual(q=q[te], qd=qd[te]), ref[te])
         out['mean'] = float(out['held'].mean())
         corr = getattr(model, 'correction_', None)
-        out['parametric'] = _nmse(model.mean_.force(qd[te]) +
-                                  (0.0 if corr is None else corr(q[te])), ref[te])
+        c = 0.0 if corr is None else corr(q[te])
+        mean = model.mean_
+        # the parametric part alone, and with the elements of D from every sample (its prior)
+        out['parametric'] = _nmse(getattr(mean, 'base', mean).force(qd[te]) + c, ref[te])
+        out['prior'] = _nmse(mean.force(qd[te]) + c, ref[te])
         rng = np.random.default_rng(0)
         lo, hi = qd[tr].min(axis=0), qd[tr].max(axis=0)
         Qs = np.vstack([rng.uniform(lo, hi, (N_RANDOM, lo.size)),
@@ -275,9 +283,54 @@ def report(a, results: list, wall: float) -> str:
                   f'{"; ".join(check(label, r)) or "met"}.', '',
                   C.md_table(['', 'mean'] + [f'j{j + 1}' for j in range(len(r['held']))],
                              [[k, C.fmt(np.mean(r[k]))] + [C.fmt(v) for v in r[k]]
-                              for k in ('held', 'parametric', 'cv', 'sigmoid', 'live', 'zero')]),
+                              for k in ('held', 'prior', 'parametric', 'cv', 'sigmoid', 'live',
+                                        'zero')]),
                   '']
     return '\n'.join(lines)
+
+
+#: no harm outside the data: learn on the first third of the shared log only, score the rest
+NO_HARM = ('real Panda, ~1 kHz', 'real UR10, 125 Hz')
+
+
+def no_harm(label: str) -> Optional[dict]:
+    """
+    Learn ``label``'s log on its first third only and score the rest (``arm_case``).
+
+    The rest holds poses and speeds the start never visited: per joint the model, its prior
+    (the parametric part with the elements of D from every sample) and the parametric part
+    alone. None without the log.
+    """
+    log = family_log(label)
+    if log is None:
+        return None
+    r = arm_case(log, split_s=float(log['t'][0] + (log['t'][-1] - log['t'][0]) / 3.0),
+                 baselines=False)
+    return r
+
+
+def _no_harm_section(rows: list) -> list:
+    lines = ['', '### No harm outside the data', '',
+             'Each case learned on the first third of the shared log only and held out on the '
+             'rest (poses and speeds the start never visited). Per joint, held-out NMSE of the '
+             'saved model, of its prior (the parametric part with the elements of D from every '
+             'sample) and of the parametric part alone; the worst joint of the prior over the '
+             'parametric part (the elements must not make a joint worse where they have no '
+             'grounds).', '']
+    table = []
+    for label, r in rows:
+        if r is None or not r['trained']:
+            table.append([label, 'log not found: skipped' if r is None else 'never trained',
+                          '-', '-', '-', '-'])
+            continue
+        table.append([label, r['structure'] or '-',
+                      ' / '.join(C.fmt(v) for v in r['held']),
+                      ' / '.join(C.fmt(v) for v in r['prior']),
+                      ' / '.join(C.fmt(v) for v in r['parametric']),
+                      f'{np.max(r["prior"] / r["parametric"]):.3f}'])
+    return lines + [C.md_table(['case (first third)', 'structure', 'model per joint',
+                                'prior per joint', 'parametric per joint',
+                                'worst joint: prior / parametric'], table), '']
 
 
 def main(argv=None) -> int:
@@ -290,7 +343,11 @@ def main(argv=None) -> int:
         C.log(f'{NAME}: {label} ' + ('skipped (no log)' if r is None else
                                      f'{r["wall_s"]:.1f} s, held out {r.get("mean", "-")}'))
         results.append((label, r))
-    C.write_section(a.out, NAME, report(a, results, time.perf_counter() - t0))
+    harm = [] if a.quick else [(label, no_harm(label)) for label in NO_HARM]
+    body = report(a, results, time.perf_counter() - t0)
+    if harm:
+        body += '\n'.join(_no_harm_section(harm))
+    C.write_section(a.out, NAME, body)
     return 0
 
 
