@@ -39,10 +39,11 @@ PARAMS = {p.name: p for p in (
               'correction of the rigid-body model; fitted on the whole history), or fixed: '
               'constant viscous diagonal (the paper), Coulomb + viscous, + Stribeck (fitted on '
               'the buffer)', choices=('auto',) + tuple(PRIORS)),
-    ParamSpec('history_elements', 'bool', True, 'prior auto only: each joint may carry an element '
-              'of D learned from every sample (a reduced-rank GP on its velocity, in the long '
-              'history), kept where it predicts the newest blocks better than the parametric '
-              'part and two halves of the run learn it alike; false: the parametric part alone'),
+    ParamSpec('history_elements', 'bool', True, 'prior auto, on an arm (inverse_dynamics set) '
+              'only: each joint may carry an element of D learned from every sample (a '
+              'reduced-rank GP on its velocity, in the long history), kept where it predicts '
+              'the newest blocks better than the parametric part and two halves of the run '
+              'learn it alike; false: the parametric part alone'),
     ParamSpec('bias', 'bool', False, 'fixed prior only: learn a per-joint constant bias with the '
               'prior (reported apart from the damping force); auto decides itself'),
     ParamSpec('noise_floor', 'float', 1e-5, 'least noise variance the hyper-parameter fit may '

@@ -77,8 +77,12 @@ class Structure:
                 except Exception as exc:        # noqa: BLE001 - offsets and friction still
                     h.last_refit_error = f'no conservative correction: {exc}'
             default = 'friction' if self._inverse is not None else 'viscous'
-            self._history = LongHistory(N, basis, default, offsets=self._inverse is not None,
-                                        elements=self._elements)
+            # the elements from every sample serve arms (a rigid-body model given); on the
+            # A320 an element toggling at a re-selection left 1 s windows of 0.16-0.24 in two
+            # random flights and the default flight's beta 4x worse (docs/BENCHMARKS.md)
+            arm = self._inverse is not None
+            self._history = LongHistory(N, basis, default, offsets=arm,
+                                        elements=self._elements and arm)
             h.correction_basis = '' if basis is None else basis.source
         try:
             return self._history.push(stamp, q, qd, qdd, r)
