@@ -87,6 +87,35 @@ def measure(kind: str, elements: bool, seconds: float) -> dict:
             else '', 'samples': len(t)}
 
 
+def answer_cost() -> dict:
+    """
+    Time one message's answer (the message path's lean pass, ``online.plan.AnswerPlan``).
+
+    A Diag-D-GP of 7 joints at the node's buffer (200 samples), its prior the frozen friction
+    alone, and the same with elements from every sample on all 7 joints: us per answer.
+    """
+    from dgp_ros.gp import DiagDGP
+    from dgp_ros.gp.joint_element import JointElementMean, M_BASIS, VelocityBasis
+    from dgp_ros.gp.means import BasisFrictionMean
+    from dgp_ros.dynamics.history import EPS_S, F, FRICTION_EPS, STRIBECK_VS
+    from dgp_ros.online.plan import AnswerPlan
+    rng = np.random.default_rng(1)
+    Qd = rng.normal(0.0, 0.8, (200, N))
+    Tau = 0.4 * np.tanh(Qd / 0.02) + 0.3 * Qd + 0.02 * rng.normal(size=Qd.shape)
+    base = BasisFrictionMean(np.abs(rng.normal(0.0, 0.2, (N, F))), FRICTION_EPS, EPS_S,
+                             STRIBECK_VS)
+    W = rng.normal(0.0, 0.1, (N, M_BASIS)) / np.arange(1, M_BASIS + 1)
+    out = {}
+    for label, prior in (('parametric prior', base),
+                         ('with elements on 7 joints',
+                          JointElementMean(base, VelocityBasis(np.full(N, 2.0)), W))):
+        m = DiagDGP(prior=prior, n_restarts=0).fit(Qd, Tau)
+        plan = AnswerPlan(m)
+        q = Qd[:1] * 1.1
+        out[label] = 1e6 * C.timeit(lambda: plan.answers(q, False), repeat=7, number=200)
+    return out
+
+
 def main(argv=None) -> int:
     a = C.parse_args(__doc__.strip().split('\n')[0], argv)
     seconds = 70.0 if a.quick else 600.0
@@ -102,6 +131,8 @@ def main(argv=None) -> int:
             C.log(f'{NAME}: {kind}, elements {el}: push {r["push_us"]:.1f} us, select '
                   f'{r["select_ms"]:.1f} ms, memory {r["memory"]}')
             rows.append(r)
+    ans = answer_cost()
+    C.log(f'{NAME}: answers {ans}')
     table = []
     for r in rows:
         base = next(b for b in rows if b['kind'] == r['kind'] and not b['elements'])
@@ -124,7 +155,9 @@ def main(argv=None) -> int:
             + C.md_table(['correction', 'elements', 'push us/sample', 'over no elements',
                           'push in Choleskys', 'select ms', 'select in Choleskys',
                           'memory MiB (60 s / end)', 'elements on (synthetic stream)'],
-                         table) + '\n')
+                         table) + "\n\nOne message answered (the message path's lean pass, "
+            '`online.plan.AnswerPlan`, a Diag-D-GP of 7 joints at buffer 200): '
+            + '; '.join(f'{k} {v:.1f} us' for k, v in ans.items()) + '.\n')
     C.write_section(a.out, NAME, body)
     return 0
 

@@ -313,6 +313,8 @@ class JointElementMean(PriorMean):
     # ------------------------------------------------------------------ values
     def _t(self, A: np.ndarray, eps: np.ndarray) -> np.ndarray:
         """``tanh(a / eps) / a`` at speeds A (..., n), continuous at 0."""
+        if A.size and A.min() >= 1e-6 * eps.max():
+            return np.tanh(A / eps) / A          # no speed near rest: the message path's case
         small = A < 1e-6 * eps
         with np.errstate(invalid='ignore', divide='ignore'):
             out = np.tanh(A / eps) / np.where(small, 1.0, A)
@@ -323,7 +325,8 @@ class JointElementMean(PriorMean):
         b = self.basis
         U = V / np.sqrt(V * V + b.vc[j] ** 2)
         S = np.sin(b.omega * (U[..., None] + 1.0))                      # (..., n, M)
-        return np.einsum('...nm,nm->...n', S, self.W[j])
+        S *= self.W[j]
+        return S.sum(axis=-1)
 
     def element_diag(self, Qd) -> np.ndarray:
         """Return the elements' part of ``m_d`` (before the floor), (k, N)."""
