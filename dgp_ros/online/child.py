@@ -43,6 +43,12 @@ class LearnerLoop:
     #: other answer came from a model two samples old)
     SNAPSHOT_PERIOD_S = 0.005
     SNAPSHOT_BYTES_PER_S = 100e6
+    #: ... and at most this share of the learner's wall time goes to sending them: a learner
+    #: short of CPU (two busy processes beside it: 5-10 % of a core) spent 3.7 ms of CPU per
+    #: snapshot at 54 a second, more than it had, and fell behind the stream; with the
+    #: period at least (1 - share) / share x a snapshot's wall time it keeps up, its
+    #: snapshots fewer and each as fresh as it can be
+    SNAPSHOT_SHARE = 0.25
     #: the status is sent at least this often (s)
     STATUS_PERIOD_S = 0.25
     #: gains that changed without a new model are sent at most this often (s)
@@ -196,7 +202,10 @@ class LearnerLoop:
                 self.sent_gains = L.gains_seq
                 n, N = (0, 0) if snap.model is None else snap.model.posterior_.X.shape
                 size = 8.0 * n * N * (4 + (n if self.variance else 0))
-                self.period = max(self.SNAPSHOT_PERIOD_S, size / self.SNAPSHOT_BYTES_PER_S)
+                cost = time.monotonic() - now            # wall time of this snapshot
+                share = (1.0 - self.SNAPSHOT_SHARE) / self.SNAPSHOT_SHARE
+                self.period = max(self.SNAPSHOT_PERIOD_S, size / self.SNAPSHOT_BYTES_PER_S,
+                                  share * cost)
         elif L.gains_seq != self.sent_gains and L.version == self.sent_version and \
                 (self.waits or now - self.gains_at >= self.GAINS_PERIOD_S):
             # the same model with newer gains: only they travel (the node swaps them in)

@@ -116,6 +116,8 @@ class LearnerHealth:
     last_refit_stamp: Optional[float] = None
     last_refit_wall_time: Optional[float] = None
     last_refit_duration_s: Optional[float] = None
+    last_fit_wall_s: float = float('nan')     # the last refit's fit: wall time (s) ...
+    last_fit_cpu_s: float = float('nan')      # ... and its own computing time (s)
     last_refit_optimized: Optional[bool] = None
     refit_durations: deque = field(default_factory=lambda: deque(maxlen=1000))
     recent_refits: deque = field(default_factory=lambda: deque(maxlen=RECENT_REFITS))  # ok?
@@ -137,8 +139,11 @@ class LearnerHealth:
         self.last_proof_error = why_not
 
     def refit_done(self, ok: bool, seconds: float, stamp, optimized: bool, error: str,
-                   wall_time: float) -> None:
+                   wall_time: float, fit_wall_s: float = float('nan'),
+                   fit_cpu_s: float = float('nan')) -> None:
+        """Record a refit: its outcome, and the fit's wall and computing time (s)."""
         self.last_refit_duration_s = seconds
+        self.last_fit_wall_s, self.last_fit_cpu_s = fit_wall_s, fit_cpu_s
         self.refit_durations.append(seconds)
         self.last_refit_wall_time = wall_time
         self.last_refit_stamp = stamp

@@ -31,7 +31,7 @@ import numpy as np
 
 from dgp_ros.gp.select import choice_summary
 
-from .worker import held_out, prove, RefitJob, RefitResult, run_job
+from .worker import held_out, RefitJob, RefitResult, run_job
 
 __all__ = ['Refits']
 
@@ -48,6 +48,8 @@ class Refits:
 
     #: a stamp this many refit periods ahead of the refit clock is a jump, not elapsed time
     CLOCK_JUMP_PERIODS = 10
+    #: a re-proof waits this many times the last one's wall time after it (``_proof_spaced``)
+    PROOF_SPACING = 3.0
     #: a candidate whose error on the samples that arrived during its fit exceeds the current
     #: model's by this factor (plus 1 % of their variance) is not swapped in
     HELD_OUT_FACTOR = 3.0
@@ -81,6 +83,8 @@ class Refits:
         self._novel, self._novel_t = False, None
         self._clock: Optional[float] = None   # learning time of the last refit decision
         self._last_recert: Optional[float] = None
+        self._proof_done: Optional[float] = None    # wall clock at the end of the last re-proof
+        self._proof_wall = 0.0                      # and the wall time it took (s)
         self._recert_seq = -1             # the served model's ``held`` at the last re-proof
         self._requested = False
         self._retry_at: Optional[int] = None  # window seq at which a rejected fit is retried
@@ -229,11 +233,24 @@ class Refits:
             # refits only (it would hold up the replay and be stale at the next sample)
             gap = self.proof_gap(cfg.refit_period_s / 4.0 if cfg.refit_period_s > 0 else 0.25)
             last = self._last_recert
-            if last is None or stamp < last or stamp - last >= gap or \
-                    (idle and served.held != self._recert_seq):
+            if (last is None or stamp < last or stamp - last >= gap or
+                    (idle and served.held != self._recert_seq)) and self._proof_spaced():
                 self._last_recert, self._recert_seq = stamp, served.held
                 return self.recertify_job(last_t)
         return None
+
+    def _proof_spaced(self) -> bool:
+        """
+        Tell whether the last re-proof left the job thread free long enough (wall clock).
+
+        Re-proofs share the one job thread with the refits: a learner short of CPU (two busy
+        processes beside it) spent 10-15 s of wall on each domain proof of the A320, one after
+        the other, and refitted every 14-18 s instead of every 10. So after a re-proof the next
+        waits ``PROOF_SPACING`` x its wall time: the proofs take at most a quarter of the job
+        thread, and a refit due meanwhile runs first.
+        """
+        return self._proof_done is None or \
+            time.monotonic() >= self._proof_done + self.PROOF_SPACING * self._proof_wall
 
     def recertify_job(self, last_t: Optional[float], config=None,
                       full: bool = False) -> RefitJob:
@@ -343,9 +360,8 @@ class Refits:
                     correction = self._structure.correction()
                     seq, gen = win.seq, win.target_gen
                 if newer:
-                    model.fit(Q, T, optimize=False)
+                    model.fit(Q, T, optimize=False, prove=False)
                     model.correction_ = correction
-                    proof = prove(model, cfg.passivity)
         except Exception as exc:
             ok, why = False, f'{type(exc).__name__}: {exc}'
         dt = time.perf_counter() - t0
@@ -353,9 +369,10 @@ class Refits:
             if job.generation != self._generation:
                 return False, 'discarded: the estimator was reset'
             self._pending.clear()
-            if ok:
+            if ok and (job.kind == 'recertify' or job.full):      # a fit is proven after it
                 h.proof_done(proof)
             if job.kind == 'recertify':
+                self._proof_done, self._proof_wall = time.monotonic(), dt
                 return self._recertified(job, model, ok, why, proof, dt)
             if ok:
                 self._swap(job, model, seq, gen)
@@ -372,7 +389,7 @@ class Refits:
                     2 ** min(h.consecutive_refit_failures, 6)          # backing off
             h.refit_done(ok, dt, job.stamp, job.optimize,
                          '' if ok else (why if model is None else f'not swapped in: {why}'),
-                         time.time())
+                         time.time(), res.seconds, res.cpu_seconds)
             error = h.last_refit_error
         if ok and cfg.model_path:
             try:

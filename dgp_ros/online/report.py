@@ -48,6 +48,8 @@ def learner_status(L) -> dict:
         'bias': (None if model is None or not cfg.bias else
                  [round(float(b), 6) for b in model.bias_]),
         'version': L.version,
+        'last_fit_wall_s': _num(h.last_fit_wall_s),
+        'last_fit_cpu_s': _num(h.last_fit_cpu_s),
         'structure': h.structure,
         'structure_scores': dict(h.structure_scores),
         'joint_elements': dict(h.joint_elements),
@@ -61,6 +63,16 @@ def learner_status(L) -> dict:
     d.update(h.counters())
     d.update(L.grounds.summary())
     return d
+
+
+def _num(x):
+    """Return a finite number rounded for /diagnostics, None for NaN (nothing measured)."""
+    return None if x != x else round(float(x), 3)
+
+
+#: a learner whose last fit took this many times its computing time, and at least this much
+#: wall time (s), is short of CPU (``_starved``)
+STARVED_RATIO, STARVED_MIN_S = 5.0, 2.0
 
 
 def warnings(L) -> List[str]:
@@ -86,6 +98,9 @@ def warnings(L) -> List[str]:
         out.append(f'data are not damping: qd . ({what}) < 0 on {100 * frac:.0f}% of the '
                    f'recent samples (friction dissipates); {hint}')
     out += _front_warnings(L.front.residual, L.health)
+    starved = _starved(L.health)
+    if starved:
+        out.append(starved)
     if L.served.model is not None:
         names = L.structure_names() or [str(j) for j in range(L.N or 0)]
         bad = L.grounds.worse_than_nothing(names)
@@ -99,6 +114,26 @@ def warnings(L) -> List[str]:
                        f'{", ".join(worse)} (one-step, the last seconds): the answers fall back '
                        'to it there')
     return out
+
+
+def _starved(h) -> str:
+    """
+    Say that the learner is short of CPU; '' when it is not.
+
+    Short: its last fit's wall time over its own computing time is at least ``STARVED_RATIO``
+    (and the wall at least ``STARVED_MIN_S``). Quiet, a fit's thread shares the learner process
+    with its own loop (2-3x its computing time); beside two busy processes a learner at nice 10
+    took 4.4 s of wall for 0.24 s of work (18x).
+    The model then learns more slowly: the answers lean on the parametric part and on the
+    model they have, and a controller should know.
+    """
+    wall, cpu = h.last_fit_wall_s, h.last_fit_cpu_s
+    if not (wall >= STARVED_MIN_S and cpu > 0 and wall >= STARVED_RATIO * cpu):
+        return ''
+    return (f'the learner is short of CPU: its last refit took {wall:.1f} s for {cpu:.2f} s '
+            f'of computing ({wall / cpu:.0f}x): the model learns more slowly and the answers '
+            'lean on the parametric part meanwhile (other processes take the CPU; the learner '
+            'runs niced, learner_sched)')
 
 
 def _front_warnings(front, h) -> List[str]:
