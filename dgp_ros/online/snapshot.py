@@ -107,10 +107,8 @@ class Snapshots:
         mean, std = self._structure.prior(win, N)
         model = served.model
         if model is not None and model.posterior_.structure.has_damping:
-            # a model answers with its own bounds; its fallback is the parametric part as it
-            # is now (``Structure.answering``: the same prior the gains were earned against)
-            bound = np.abs(model.Y_train_).max(axis=0)
-            mean = self._structure.answering(win, N, model) or mean
+            # a model answers with its own prior and bounds: the same after a reload
+            mean, bound = model.mean_, np.abs(model.Y_train_).max(axis=0)
             Q = model.X_train_
         else:
             Q, T = win.rows_unordered()

@@ -45,9 +45,6 @@ class Structure:
     CORRECTION_INFLATION = 1.5
     #: the structure is re-selected when the history has grown by this factor since the last
     RESELECT_GROWTH = 1.25
-    #: the answers' fallback (the parametric part) is refitted when the history has grown by
-    #: this factor since its last fit (``_fresh_fit``)
-    FALLBACK_GROWTH = 1.1
 
     def __init__(self, config, inverse, health):
         self.auto = config.prior == 'auto' and config.model != 'ard'
@@ -59,7 +56,6 @@ class Structure:
         self._health = health
         self._history: Optional[LongHistory] = None
         self._param: Optional[ParametricFit] = None
-        self._fresh: Optional[ParametricFit] = None     # the answers' fallback (_fresh_fit)
         #: the auto prior of the last snapshot: (fit, mean, std, window seq, buffer rows)
         self._auto_cache: Optional[tuple] = None
         #: the fixed prior fitted to the window: (mean, std, window seq), refitted per tenth
@@ -241,38 +237,17 @@ class Structure:
         """
         Return the prior the answers come from now (the fallback beside ``model``), or None.
 
-        With ``prior='auto'`` the parametric part as fitted on the history now (``prior``):
-        a served model was fitted on what the learner had then, and where it is late (a learner
-        starved of CPU refits every 20 s instead of every 2) its own prior is as old as it is.
-        With a fixed prior, or a model this learner did not fit (loaded from a file: the
-        history has not been selected on yet), the served ``model``'s own prior mean where it
-        has one, else ``prior``. None while nothing was fitted (the answer was zero, not a
-        prior's) or the buffer is degenerate.
+        The served ``model``'s own prior mean where it has one, else ``prior``; None while
+        nothing was fitted (the answer was zero, not a prior's) or the buffer is degenerate.
         """
         if model is None and not window.size and not self.history_samples:
             return None
         try:
-            own = not self.auto or self._param is None
-            if own and model is not None and model.posterior_.structure.has_damping:
+            if model is not None and model.posterior_.structure.has_damping:
                 return model.mean_
             return self.prior(window, N)[0]
         except Exception:           # noqa: BLE001 - no prior yet (degenerate buffer)
             return None
-
-    def _fresh_fit(self):
-        """
-        Return the parametric part fitted on the history as it is now (the answers' fallback).
-
-        Re-selected whenever the history has grown by ``FALLBACK_GROWTH`` since, on the
-        learner's own loop (milliseconds: it never waits for a refit); unlike ``reselect`` it
-        leaves the window's targets as they are, so the served model keeps taking samples.
-        """
-        h, f = self._history, self._fresh
-        if self._param is not None and (f is None or self._param.samples > f.samples):
-            f = self._fresh = self._param
-        if f is None or h.samples >= self.FALLBACK_GROWTH * max(f.samples, 1):
-            f = self._fresh = h.select()
-        return f
 
     def _auto_prior(self, window, N: int):
         """(mean, std) of the parametric part for answers before the first model, or None."""
@@ -284,9 +259,9 @@ class Structure:
             # (a re-selection would start the doubling schedule one sample early)
             fit = h.fit(h.default_family, False, False)
         else:
-            if self._param is None:
+            if self._param is None or self._param.samples * 2 < h.samples:
                 self.reselect(window)
-            fit = self._fresh_fit()
+            fit = self._param
             # every snapshot asks (tens a second): the mean is the fit's own, its stddev over
             # the buffer is refreshed per tenth of the buffer learned (the friction basis at
             # every buffered sample cost 3 to 5 ms a snapshot, the largest part of the learner's
