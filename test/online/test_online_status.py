@@ -102,3 +102,19 @@ def test_a_model_worse_than_no_answer_is_named_and_dropped_within_a_second():
     d = est.diagnostics()
     assert d['level'] == WARN and 'worse than no answer on b ' in d['message'], d['message']
     est.close()
+
+
+def test_a_learner_short_of_cpu_says_so_and_is_ok_again_when_the_load_goes():
+    """The last fit's wall time over its computing time: WARN with both, then OK."""
+    from dgp_ros.online.health import LearnerHealth
+    from dgp_ros.online.report import _starved, STARVED_MIN_S, STARVED_RATIO
+    h = LearnerHealth()
+    assert _starved(h) == ''                          # nothing measured yet
+    h.refit_done(True, 24.5, 10.0, True, '', 0.0, 24.1, 1.2)     # 20x: two busy processes
+    msg = _starved(h)
+    assert 'short of CPU' in msg and '24.1 s for 1.20 s' in msg and '20x' in msg, msg
+    h.refit_done(True, 0.6, 20.0, True, '', 0.0, 0.55, 0.21)     # quiet: 2.6x, and short
+    assert _starved(h) == ''
+    # a long fit that computed all the time is not starved, however long
+    h.refit_done(True, 30.0, 30.0, True, '', 0.0, 30.0, 29.0)
+    assert _starved(h) == '' and STARVED_RATIO > 1 and STARVED_MIN_S > 0

@@ -1,0 +1,185 @@
+#!/usr/bin/env python3
+"""
+A busy computer: the demos beside processes that take the CPU, against the same demos quiet.
+
+A robot's or an aircraft's computer is never idle. This script starts the load itself
+(``--load`` busy processes, one shell-like spin loop each, at the default priority) and runs,
+with the node's defaults over real DDS (``dgp-demo``, the user's command):
+
+* the A320 approach at real time, ``--runs`` times beside the load and ``--runs`` times quiet;
+* the same at ``--fast`` times real time (``sim_bridge``'s ``real_time_factor``: a fast stream
+  is a busy computer too), beside the load;
+* the robot demo (``--robot panda``: the simulated Panda at 1 kHz, its saved model held out
+  against the true friction) beside the load and quiet, once each.
+
+For each run: the NMSE per output one step ahead over the flight and its second half, the held
+out NMSE of the model saved after 30 s (the robot demo: held out per joint, beside the
+least-squares fits), the refits, and every distinct /diagnostics message the demo printed
+(the status under load must say so, with the reason). ``--quick``: one A320 run each way at
+half the flight. Writes section ``busy`` of docs/BENCHMARKS.md (``--out``).
+
+Usage: bench/busy.py [--quick] [--runs K] [--load P] [--fast F] [--out DIR]
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import common as C  # noqa: E402
+
+NAME = 'busy'
+OUTPUTS = ('alpha', 'beta', 'airspeed')
+
+
+class Load:
+    """``n`` busy processes (a spin loop each) while the ``with`` block runs."""
+
+    def __init__(self, n: int):
+        self.n, self.procs = int(n), []
+
+    def __enter__(self):
+        code = 'while True:\n    pass\n'
+        self.procs = [subprocess.Popen([sys.executable, '-c', code]) for _ in range(self.n)]
+        time.sleep(0.5)
+        return self
+
+    def __exit__(self, *exc):
+        for p in self.procs:
+            p.kill()
+        for p in self.procs:
+            p.wait()
+
+
+def demo(args: list, out: str) -> dict:
+    """Run ``dgp-demo`` with ``args`` into ``out``; its summary.json and the status lines."""
+    cmd = [sys.executable, '-m', 'dgp_ros.apps.demo', '--out', out] + args
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=C.REPO,
+                       env=dict(os.environ, OPENBLAS_NUM_THREADS='1'))
+    wall = time.perf_counter() - t0
+    path = os.path.join(out, 'summary.json')
+    res = json.load(open(path)) if os.path.exists(path) else {}
+    # every distinct status the progress lines carried (after the counters)
+    said = []
+    for line in r.stdout.splitlines():
+        m = re.search(r'\| refits \S+ \| (.*)$', line)
+        if m:
+            for part in m.group(1).split('; '):
+                key = re.sub(r'[0-9.]+', '#', part)[:70]
+                if key not in {re.sub(r'[0-9.]+', '#', s)[:70] for s in said}:
+                    said.append(part)
+    return {'rc': r.returncode, 'wall_s': wall, 'summary': res, 'said': said,
+            'tail': r.stdout.splitlines()[-25:]}
+
+
+def a320_row(label: str, r: dict) -> list:
+    s = r['summary']
+    if not s:
+        return [label, f'failed (rc {r["rc"]})'] + ['-'] * 4
+    f = C.fmt
+    ho = s.get('held_out') or {}
+    d = s.get('diagnostics') or {}
+    return [label, ' / '.join(f(s['nmse'][o]) for o in OUTPUTS),
+            ' / '.join(f(s['nmse_second_half'][o]) for o in OUTPUTS),
+            ' / '.join(f(ho.get('nmse', {}).get(o, float('nan'))) for o in OUTPUTS) if ho
+            else '-', f'{d.get("refits_ok", "-")}', f'{r["wall_s"]:.0f} s']
+
+
+def robot_row(label: str, r: dict) -> list:
+    s = r['summary']
+    if not s:
+        return [label, f'failed (rc {r["rc"]})', '-', '-']
+    held = s.get('held_out', {})
+    nm = held.get('nmse') or {}
+    ls = held.get('least_squares') or held.get('baselines') or {}
+    return [label, json.dumps(nm)[:200] if nm else json.dumps(held)[:200],
+            json.dumps(ls)[:200] if ls else '-', f'{r["wall_s"]:.0f} s']
+
+
+def main(argv=None) -> int:
+    def extra(p):
+        p.add_argument('--runs', type=int, default=3, help='A320 runs each way')
+        p.add_argument('--load', type=int, default=2, help='busy processes')
+        p.add_argument('--fast', type=float, default=4.0, help='real-time factor of the fast '
+                       'runs (0: none)')
+        p.add_argument('--no-robot', action='store_true', help='skip the robot demo')
+    a = C.parse_args(__doc__.strip().split('\n')[0], argv, extra)
+    runs = 1 if a.quick else a.runs
+    flight = ['--max-sim-time', '35', '--held-out-after', '20'] if a.quick else []
+    t0 = time.perf_counter()
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(runs):
+            for loaded in (True, False):
+                label = f'A320 {"beside the load" if loaded else "quiet"} {k + 1}'
+                C.log(f'{NAME}: {label}')
+                if loaded:
+                    with Load(a.load):
+                        r = demo(flight, os.path.join(tmp, f'a{k}l'))
+                else:
+                    r = demo(flight, os.path.join(tmp, f'a{k}q'))
+                results.append(('a320', label, r))
+        if a.fast and not a.quick:
+            for k in range(runs):
+                label = f'A320 at {a.fast:g}x real time beside the load {k + 1}'
+                C.log(f'{NAME}: {label}')
+                with Load(a.load):
+                    r = demo(['--real-time-factor', str(a.fast)], os.path.join(tmp, f'f{k}'))
+                results.append(('a320', label, r))
+        if not a.no_robot and not a.quick:
+            for loaded in (True, False):
+                label = f'robot demo (Panda) {"beside the load" if loaded else "quiet"}'
+                C.log(f'{NAME}: {label}')
+                args = ['--robot', 'panda']
+                if loaded:
+                    with Load(a.load):
+                        r = demo(args, os.path.join(tmp, f'p{int(loaded)}'))
+                else:
+                    r = demo(args, os.path.join(tmp, f'p{int(loaded)}'))
+                results.append(('robot', label, r))
+    wall = time.perf_counter() - t0
+    quiet = [r['summary'] for kind, label, r in results
+             if kind == 'a320' and 'quiet' in label and r['summary']]
+    med = {o: float(np.median([s['nmse'][o] for s in quiet])) for o in OUTPUTS} if quiet \
+        else {}
+    lines = [C.header_lines('A busy computer: the demos beside busy processes', f'bench/{NAME}.py',
+                            a.quick, wall), '',
+             f"The user's commands (`dgp-demo`, the node's defaults over real DDS), quiet and "
+             f'beside {a.load} busy processes (spin loops at the default priority, started by '
+             'this script) on this machine. A320: NMSE per output (alpha / beta / airspeed) one '
+             'step ahead over the flight and its second half, and held out (the model saved '
+             'after 30 s, on the rest of the flight).', '',
+             C.md_table(['run', 'flight', 'second half', 'held out', 'refits ok', 'wall'],
+                        [a320_row(label, r) for kind, label, r in results if kind == 'a320']),
+             '']
+    if med:
+        lines.append('Quiet median over the flight: ' +
+                     ' / '.join(C.fmt(med[o]) for o in OUTPUTS) + '; each run over it: ' +
+                     '; '.join(f'{label}: ' + ' / '.join(
+                         f'{r["summary"]["nmse"][o] / max(med[o], 1e-300):.2g}x'
+                         for o in OUTPUTS)
+                               for kind, label, r in results
+                               if kind == 'a320' and r['summary']) + '.')
+        lines.append('')
+    robots = [(label, r) for kind, label, r in results if kind == 'robot']
+    if robots:
+        lines += [C.md_table(['run', 'held out (per joint)', 'least squares', 'wall'],
+                             [robot_row(label, r) for label, r in robots]), '']
+    lines += ['What the status said during each run (each distinct message once):', '']
+    for kind, label, r in results:
+        lines.append(f'- {label}: ' + ('; '.join(f'`{x}`' for x in r['said']) or '-'))
+    C.write_section(a.out, NAME, '\n'.join(lines) + '\n')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
