@@ -132,8 +132,8 @@ def _starved(h) -> str:
         return ''
     return (f'the learner is short of CPU: its last refit took {wall:.1f} s for {cpu:.2f} s '
             f'of computing ({wall / cpu:.0f}x): the model learns more slowly and the answers '
-            'lean on the parametric part meanwhile (other processes take the CPU; the learner '
-            'runs niced, learner_sched)')
+            'lean on the parametric part meanwhile (other processes take the CPU, and the '
+            'learner runs niced: learner_sched)')
 
 
 def _front_warnings(front, h) -> List[str]:
