@@ -91,6 +91,7 @@ class LearnerHealth:
 
     samples_added: int = 0
     samples_skipped: int = 0          # near-duplicates (novelty selection)
+    samples_thinned: int = 0          # left out by a learner behind its stream (one in k kept)
     samples_rate_limited: int = 0
     samples_outliers: int = 0         # isolated far outliers not learned
     inverse_dynamics_errors: int = 0  # samples the inverse dynamics could not process
@@ -161,6 +162,7 @@ class LearnerHealth:
     def counters(self) -> dict:
         return {
             'samples_added': self.samples_added, 'samples_skipped': self.samples_skipped,
+            'samples_thinned': self.samples_thinned,
             'samples_rate_limited': self.samples_rate_limited,
             'samples_outliers': self.samples_outliers,
             'refits_started': self.refits_started, 'refits_ok': self.refits_ok,

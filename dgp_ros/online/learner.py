@@ -208,7 +208,8 @@ class Learner:
             self.health.last_refit_error = message
 
     # ------------------------------------------------------------------ learning
-    def learn(self, t: float, qd: np.ndarray, tau: np.ndarray, q=None) -> Tuple[bool, list]:
+    def learn(self, t: float, qd: np.ndarray, tau: np.ndarray, q=None,
+              thin: bool = False) -> Tuple[bool, list]:
         """
         Learn from one validated measurement at learning time ``t`` (s).
 
@@ -216,6 +217,9 @@ class Learner:
         configured joint order. Returns (taken for learning, completed residual samples); the
         residual samples (``dynamics.ResidualSample``) trail ``t`` by the filter's half window.
         Never raises on a failing plugin or model (counted, the sample is not learned).
+        ``thin``: the front end takes the measurement (the acceleration filter needs every one)
+        but what it gives is not learned, counted as ``samples_thinned`` (a learner process
+        behind its stream: ``child.LearnerLoop._samples``).
         """
         with self._lock:
             if self._N is None:
@@ -226,7 +230,7 @@ class Learner:
                 self.health.time_jumps_back += 1
                 self.refits.jumped_back(t)
             self._last_t = t
-            added, residuals = self._learn(t, qd, tau, q)
+            added, residuals = self._learn(t, qd, tau, q, thin)
             if self.append_each:
                 self.catch_up()
             job = self._next_job(t)
@@ -266,9 +270,13 @@ class Learner:
             return self.switch.job()            # serve only: nothing else (``switch``)
         return self.refits.next_job(stamp, self._last_t, idle)
 
-    def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q) -> Tuple[bool, list]:
+    def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q,
+               thin: bool = False) -> Tuple[bool, list]:
         """Offer the sample for learning (``front``); learn what it gives; (taken, residuals)."""
         want, done, take = self.front.offer(self.config, self.health, stamp, qd, tau, q)
+        if thin:
+            self.health.samples_thinned += len(take)
+            return False, done
         if self._inverse is None:
             return (self._add(*take[0]) if take else False), []
         for sample in take:

@@ -239,7 +239,7 @@ def test_async_refit_replays_samples_and_swaps():
     feed(est, 40)                             # refit started at 10 samples, others arrive
     assert est.wait_for_refit(timeout=120)
     d = est.diagnostics()
-    assert d['trained'] and d['refits_ok'] == 1
+    assert d['trained'] and d['refits_ok'] >= 1     # (a quick fit leaves time for the next)
     # every buffered sample is in the swapped-in model (replayed with update)
     assert est.model.n_samples_ == d['buffer_fill'] == 40
     X, _ = est.samples()

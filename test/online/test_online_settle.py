@@ -63,6 +63,9 @@ def _fall_behind(ring_held_at_the_end: bool):
     # one sample per round: every round is full, as in a learner that cannot keep up (each
     # sample costs more than ROUND_S); the loop then never appends while samples wait
     loop.ROUND_S = 0.0
+    # ... and takes every sample in (a loop seconds behind learns the newest thinned instead:
+    # test_a_loop_far_behind_learns_the_newest_samples_thinned)
+    loop.BEHIND_S = float('inf')
     runner = threading.Thread(target=loop.run, daemon=True)
     runner.start()
     L = loop.learner
@@ -179,3 +182,46 @@ def test_gains_earned_without_a_new_model_reach_the_snapshot():
     np.testing.assert_array_equal(snap.prior_gain, a)
     np.testing.assert_array_equal(snap.confidence, c)
     assert snap.model is before.model                # no copy of the model for new gains
+
+
+def test_a_loop_far_behind_learns_the_newest_samples_thinned():
+    """
+    Seconds of samples waiting: the loop takes them all and learns one in k, the newest always.
+
+    The others pass the front end and are counted (``samples_thinned``); the ring is drained at
+    once instead of row by row, so the model follows the stream (issue 53: beside two busy
+    processes the A320 at 4x real time learned samples from 30 s before).
+    """
+    ctx = multiprocessing.get_context('fork')
+    lock = ctx.Lock()
+    cmd_node, cmd_child = ctx.Pipe()
+    out_node, out_child = ctx.Pipe()
+    ring = SampleRing(10, 4096, lock)
+    got = []
+    reader = threading.Thread(target=lambda: _read(out_node, got), daemon=True)
+    reader.start()
+    loop = LearnerLoop(dataclasses.asdict(cfg()), cmd_child, out_child, lock,
+                       (ring.name, ring.width, ring.capacity), None, False, False)
+    L = loop.learner
+    try:
+        t = 0.0
+        for _ in range(2000):                    # 100 s of stamps before the loop runs
+            ring.push(_row(t))
+            t += 0.05
+        loop.row_dt, loop.row_s = 0.05, 1e-3     # 1 ms a sample: 10 a round (both measured)
+        assert loop._samples()                   # one round takes them all
+        assert ring.pending() == 0
+        thinned, added = L.health.samples_thinned, L.health.samples_added
+        assert thinned > 1000 and 0 < added < 2000 - thinned + 1, (thinned, added)
+        # the newest row was learned: it is the window's last
+        assert np.allclose(L.window.rows[-1][2], path(t - 0.05))
+        # a loop that keeps up learns every sample again
+        for _ in range(3):
+            ring.push(_row(t))
+            t += 0.05
+        before = L.health.samples_thinned
+        assert loop._samples() and L.health.samples_thinned == before
+    finally:
+        ring.close()
+        cmd_node.close()
+        out_node.close()
