@@ -132,34 +132,22 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     results = []
     with tempfile.TemporaryDirectory() as tmp:
+        def run(kind, label, args, loaded):
+            C.log(f'{NAME}: {label}')
+            with Load(a.load if loaded else 0):
+                results.append((kind, label, demo(args, os.path.join(tmp, str(len(results))))))
         for k in range(runs):
             for loaded in (True, False):
-                label = f'A320 {"beside the load" if loaded else "quiet"} {k + 1}'
-                C.log(f'{NAME}: {label}')
-                if loaded:
-                    with Load(a.load):
-                        r = demo(flight, os.path.join(tmp, f'a{k}l'))
-                else:
-                    r = demo(flight, os.path.join(tmp, f'a{k}q'))
-                results.append(('a320', label, r))
+                run('a320', f'A320 {"beside the load" if loaded else "quiet"} {k + 1}', flight,
+                    loaded)
         if a.fast and not a.quick:
             for k in range(runs):
-                label = f'A320 at {a.fast:g}x real time beside the load {k + 1}'
-                C.log(f'{NAME}: {label}')
-                with Load(a.load):
-                    r = demo(['--real-time-factor', str(a.fast)], os.path.join(tmp, f'f{k}'))
-                results.append(('a320', label, r))
+                run('a320', f'A320 at {a.fast:g}x real time beside the load {k + 1}',
+                    ['--real-time-factor', str(a.fast)], True)
         if not a.no_robot and not a.quick:
             for loaded in (True, False):
-                label = f'robot demo (Panda) {"beside the load" if loaded else "quiet"}'
-                C.log(f'{NAME}: {label}')
-                args = ['--robot', 'panda']
-                if loaded:
-                    with Load(a.load):
-                        r = demo(args, os.path.join(tmp, f'p{int(loaded)}'))
-                else:
-                    r = demo(args, os.path.join(tmp, f'p{int(loaded)}'))
-                results.append(('robot', label, r))
+                run('robot', f'robot demo (Panda) {"beside the load" if loaded else "quiet"}',
+                    ['--robot', 'panda'], loaded)
     wall = time.perf_counter() - t0
     quiet = [r['summary'] for kind, label, r in results
              if kind == 'a320' and 'quiet' in label and r['summary']]

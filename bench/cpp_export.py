@@ -66,6 +66,20 @@ def _stream(est, t, names, qd, tau, q=None, bag=False):
         est.process(s, names, qd[i], tau[i], None if q is None else q[i])
 
 
+def _sim_panda(seconds: float):
+    """Learn ``seconds`` of the robot demo's Panda in line; (the estimator, the run)."""
+    from dgp_ros.dynamics import example_robot_urdf
+    from dgp_ros.dynamics.arm_stream import demo_arm
+    from dgp_ros.online import EstimatorConfig, OnlineEstimator
+    s = demo_arm('panda', seconds, seed=0)
+    names = list(s['names'])
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync', inverse_dynamics='urdf',
+                                          joints=names, urdf_file=example_robot_urdf('panda')))
+    est.set_outputs(stddev=False, damping=False)
+    _stream(est, s['t'], names, s['qd'], s['effort'], s['q'])
+    return est, s
+
+
 def learn(case: str, path: str, quick: bool) -> str:
     """Learn ``case`` with the node's defaults and save it to ``path``; returns a label."""
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
@@ -78,15 +92,7 @@ def learn(case: str, path: str, quick: bool) -> str:
         label = f'A320, {f["t"][k - 1] - f["t"][0]:.0f} s of the approach'
     elif case == 'simpanda':
         # 8 task cycles of the robot demo's Panda: the elements of D from every sample on
-        from dgp_ros.dynamics import example_robot_urdf
-        from dgp_ros.dynamics.arm_stream import demo_arm
-        s = demo_arm('panda', 80.0, seed=0)
-        names = list(s['names'])
-        est = OnlineEstimator(EstimatorConfig(
-            refit_mode='sync', inverse_dynamics='urdf', joints=names,
-            urdf_file=example_robot_urdf('panda')))
-        est.set_outputs(stddev=False, damping=False)
-        _stream(est, s['t'], names, s['qd'], s['effort'], s['q'])
+        est, s = _sim_panda(80.0)
         on = (est.diagnostics().get('joint_elements') or {}).get('on', [])
         label = f'simulated Panda, 8 task cycles (elements from every sample on joints {on})'
     else:
@@ -94,15 +100,7 @@ def learn(case: str, path: str, quick: bool) -> str:
         case = case.split('_')[0]
         d = _shared(f'{case}_real')
         if d is None or quick:
-            from dgp_ros.dynamics import example_robot_urdf
-            from dgp_ros.dynamics.arm_stream import demo_arm
-            s = demo_arm('panda', 2.0 if quick else 8.0, seed=0)
-            names = list(s['names'])
-            est = OnlineEstimator(EstimatorConfig(
-                refit_mode='sync', inverse_dynamics='urdf', joints=names,
-                urdf_file=example_robot_urdf('panda')))
-            est.set_outputs(stddev=False, damping=False)
-            _stream(est, s['t'], names, s['qd'], s['effort'], s['q'])
+            est, s = _sim_panda(2.0 if quick else 8.0)
             label = f'simulated Panda ({"no " + case + " log; " if d is None else ""}' \
                     f'{s["t"][-1]:.0f} s)'
         else:
