@@ -39,7 +39,7 @@ class LearnerLoop:
     #: more than this many rounds' worth of samples waiting, and more than this much stamp
     #: time (s): the learner is behind and learns the newest ones thinned (``_samples``),
     #: taking at most this many rows at once
-    BEHIND_ROUNDS, BEHIND_S, MAX_TAKE = 20, 1.0, 20000
+    BEHIND_ROUNDS, BEHIND_S, MAX_TAKE = 20, 5.0, 20000
     #: longest catch-up before a command that must see the samples sent before it (s)
     DRAIN_S = 0.05
     #: snapshots back to the node: at most one per period (s), and at most this many bytes/s
@@ -158,12 +158,14 @@ class LearnerLoop:
 
         A learner that cannot keep up (a stream faster than real time, a learner short of CPU)
         learns the newest samples thinned, not the old ones in full: where more than
-        ``BEHIND_ROUNDS`` rounds' worth wait, it takes them all (up to ``MAX_TAKE``) and learns
-        one in k, the newest always (the others pass the front end only, counted as
+        ``BEHIND_ROUNDS`` rounds' and ``BEHIND_S`` seconds of stamps wait, it takes them all (up
+        to ``MAX_TAKE``) and learns one in k of the samples the front end gives, the newest
+        measurement always (the others pass the front end only, counted as
         ``samples_thinned``), so that its model follows the stream at a lower rate instead of
-        falling behind it. Beside two busy
-        processes, the A320 at 4x real time was learning samples from 30 s before with two
-        refits in its whole flight (one-step NMSE 3-4 over the flight).
+        falling behind it. Beside two busy processes, the A320 at 4x real time was learning
+        samples from 30 s before with two refits in its whole flight (one-step NMSE 3-4 over
+        the flight). A burst of a second or two (a bag's first messages, a test's) is learned
+        in full.
         """
         if self.ring is None:
             return False
@@ -192,7 +194,7 @@ class LearnerLoop:
             _, res = self.learner.learn(float(r[0]), r[1:1 + N].copy(),
                                         r[1 + N:1 + 2 * N].copy(),
                                         None if np.isnan(q[0]) else q.copy(),
-                                        thin=(n - 1 - i) % k != 0)
+                                        thin=k if i < n - 1 else 1)
             done.extend(res)
         if L.rebases.appending:
             # the round's samples reach the model at once (one block); while samples queue up

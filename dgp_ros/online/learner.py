@@ -76,6 +76,7 @@ class Learner:
         self._factory = model_factory or make_model
         self._loader = model_loader or load_model
         self._lock = threading.RLock()
+        self._thin_i = 0                # samples given while thinning (``learn``'s ``thin``)
         self.load_error = ''
         self._inverse = _inverse_dynamics(self.config)
         self._names_hint: Optional[List[str]] = None
@@ -209,7 +210,7 @@ class Learner:
 
     # ------------------------------------------------------------------ learning
     def learn(self, t: float, qd: np.ndarray, tau: np.ndarray, q=None,
-              thin: bool = False) -> Tuple[bool, list]:
+              thin: int = 1) -> Tuple[bool, list]:
         """
         Learn from one validated measurement at learning time ``t`` (s).
 
@@ -217,9 +218,12 @@ class Learner:
         configured joint order. Returns (taken for learning, completed residual samples); the
         residual samples (``dynamics.ResidualSample``) trail ``t`` by the filter's half window.
         Never raises on a failing plugin or model (counted, the sample is not learned).
-        ``thin``: the front end takes the measurement (the acceleration filter needs every one)
-        but what it gives is not learned, counted as ``samples_thinned`` (a learner process
-        behind its stream: ``child.LearnerLoop._samples``).
+        ``thin`` k > 1: the front end takes the measurement (the acceleration filter needs every
+        one) and of the samples it gives one in k is learned, the others counted as
+        ``samples_thinned`` (a learner process behind its stream:
+        ``child.LearnerLoop._samples``). The count runs over the samples the front end gives,
+        not the measurements: a stream faster than ``min_sample_interval_s`` is not thinned
+        twice over (one measurement in k that the interval lets through one in ten of).
         """
         with self._lock:
             if self._N is None:
@@ -271,12 +275,19 @@ class Learner:
         return self.refits.next_job(stamp, self._last_t, idle)
 
     def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q,
-               thin: bool = False) -> Tuple[bool, list]:
+               thin: int = 1) -> Tuple[bool, list]:
         """Offer the sample for learning (``front``); learn what it gives; (taken, residuals)."""
         want, done, take = self.front.offer(self.config, self.health, stamp, qd, tau, q)
-        if thin:
-            self.health.samples_thinned += len(take)
-            return False, done
+        if thin > 1 and take:
+            kept = []
+            for sample in take:
+                self._thin_i = (self._thin_i + 1) % thin
+                if self._thin_i == 0:
+                    kept.append(sample)
+            self.health.samples_thinned += len(take) - len(kept)
+            take = kept
+            if not take:
+                return False, done
         if self._inverse is None:
             return (self._add(*take[0]) if take else False), []
         for sample in take:

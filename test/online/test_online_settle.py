@@ -223,3 +223,20 @@ def test_a_loop_far_behind_learns_the_newest_samples_thinned():
         ring.close()
         cmd_node.close()
         out_node.close()
+
+
+def test_thinning_counts_the_samples_the_front_end_gives_not_the_measurements():
+    """
+    A stream faster than its interval, thinned one in k, learns one in k of what it lets through.
+
+    A thinning by measurement index beside the interval's one in ten
+    learned next to nothing of a 1 kHz burst (a loaded CI run: fewer than 20 samples).
+    """
+    L = Learner(cfg(refit_mode='sync', min_sample_interval_s=0.01, selection='all'))
+    t = 0.0
+    for _ in range(1000):                       # 1 s at 1 kHz: the interval gives 100
+        q = path(t)
+        L.learn(t, q, true_tau(q), thin=5)
+        t += 0.001
+    added, thinned = L.health.samples_added, L.health.samples_thinned
+    assert added + thinned == 100 and added == 20, (added, thinned)
