@@ -36,7 +36,8 @@ Scores per output:
 Deterministic (fixed seeds, ``sync``). Usage:
 
     OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 PYTHONPATH=<checkout> \\
-        python bench/dgp_family.py [--quick] [--systems 2ax,3ax] [--out DIR] [--section]
+        python bench/dgp_family.py [--quick] [--systems 2ax,3ax] [--seed-offset K] \\
+        [--out DIR] [--section]
 
 writes ``DIR/dgp_family_<tag>.md`` and ``.json`` (``--section``: the report also into
 docs/BENCHMARKS.md) (tag: the short commit of the imported
@@ -294,6 +295,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     ap.add_argument('--quick', action='store_true')
     ap.add_argument('--systems', default='', help='comma-separated names (default: all)')
+    ap.add_argument('--seed-offset', type=int, default=0,
+                    help="added to every system's seed: systems of the same kind never "
+                         'developed on (e.g. 100)')
     add_options(ap, 'dgp_family')
     a = ap.parse_args(argv)
     parse_set(a.set, PARAMS)
@@ -309,7 +313,7 @@ def main(argv=None) -> int:
             continue
         print(f'[dgp_family {tag}] {name} ...', flush=True)
         try:
-            r = run_system(System(name, N, seed), duration, last)
+            r = run_system(System(name, N, seed + a.seed_offset), duration, last)
             print(f'  one-step vs truth {per_out(r["step_true"])}  box {per_out(r["box"])}  '
                   f'elements {r["elements"]}  structure {r["structure"]}  '
                   f'{r["wall_s"]:.0f} s', flush=True)
@@ -320,7 +324,8 @@ def main(argv=None) -> int:
         results.append(r)
     wall = time.perf_counter() - t0
     base = os.path.join(a.out, f'dgp_family_{tag}{"_quick" if a.quick else ""}'
-                               f'{"_" + a.systems.replace(",", "-") if a.systems else ""}')
+                               f'{"_" + a.systems.replace(",", "-") if a.systems else ""}'
+                               f'{"_seed+%d" % a.seed_offset if a.seed_offset else ""}')
     write(base, {'tag': tag, 'dgp_ros': where, 'quick': a.quick, 'wall_s': wall,
                  'results': results}, report(results, tag, where, a.quick, wall),
           'dgp_family' if a.section else None, a.quick, wall, __file__)

@@ -87,6 +87,12 @@ class _DGP:
     elements : 'all' | 'auto'
         Every element the kind has (the paper's), or per output none / its diagonal / also its
         couplings, chosen at each optimizing fit on the newest rows held out (``select``).
+    couplings : 'evidence' | 'persistent'
+        With ``elements='auto'``, where the couplings are tried: for every output, kept where
+        the held-out blocks and the newest block predicted from the rows before it (with
+        hyper-parameters learned on those rows) show them (a system whose velocities move
+        apart: the paper's), or only beside a velocity that never nears zero (an arm, whose
+        window is one path and whose couplings are what the path fakes).
 
     Fitted attributes: ``posterior_``, ``policy_``, ``mean_`` (the prior), ``hyperparams_``,
     ``bias_``, ``n_samples_``, ``X_train_``, ``Y_train_``, ``mean_diag_``, ``fit_info_``.
@@ -101,7 +107,7 @@ class _DGP:
                  hyperparams: Optional[dict] = None, random_state: int = 0,
                  operating_domain=None, prior: str = 'viscous', bias: bool = False,
                  warm_start: bool = False, noise_floor: Optional[float] = None,
-                 elements: str = 'all'):
+                 elements: str = 'all', couplings: str = 'evidence'):
         self.passivity = passivity
         self.noise = noise
         self.noise_floor = noise_floor
@@ -119,6 +125,7 @@ class _DGP:
         self.bias = bias
         self.warm_start = warm_start
         self.elements = elements
+        self.couplings = couplings
 
     # ------------------------------------------------------------------ parameters
     @classmethod
@@ -203,7 +210,8 @@ class _DGP:
         warm = bool(self.warm_start) and started     # refine the last optimum, no restarts
         if self.elements == 'auto':
             fresh = initial_hyper(structure, Qd, resid, Tau, self.noise)
-            picked = select_elements(structure, hp, Qd, resid, fresh, warm, **kw)
+            picked = select_elements(structure, hp, Qd, resid, fresh, warm,
+                                     reversing=self.couplings == 'evidence', **kw)
             if picked is not None:
                 return picked
         return learn_hyper(structure, hp, Qd, resid, warm=warm, **kw)

@@ -246,7 +246,10 @@ class EstimatorConfig:
         kw = {'passivity': self.passivity, 'window': None, 'noise_floor': self.noise_floor,
               'elements': self.elements,
               'prior': 'viscous' if self.prior == 'auto' else self.prior,
-              'bias': bool(self.bias) and self.prior != 'auto'}
+              'bias': bool(self.bias) and self.prior != 'auto',
+              # an arm's window is one path (its velocities move together): couplings there
+              # are what the path fakes, tried only beside a velocity that never nears zero
+              'couplings': 'persistent' if self.inverse_dynamics else 'evidence'}
         if self.operating_domain and self.passivity == 'certified':
             k = len(self.operating_domain) // 2
             kw['operating_domain'] = (list(self.operating_domain[:k]),

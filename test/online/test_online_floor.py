@@ -337,7 +337,8 @@ def test_the_plan_answers_a_model_with_elements_off_as_the_model():
     T = 0.4 * Q + 0.3 * np.tanh(Q / 0.05) + 0.2 * np.sin(3 * Q) * Q + \
         0.01 * rng.normal(size=Q.shape)
     T[:, 2] = 0.5 * Q[:, 2] + 0.05 * rng.normal(size=120)        # nothing for a GP to add
-    m = FullDGP(prior='friction', elements='auto', n_restarts=0).fit(Q, T)
+    m = FullDGP(prior='friction', elements='auto', couplings='persistent',
+                n_restarts=0).fit(Q, T)
     choices = row_choices(m.posterior_.structure, m.posterior_.hyper)
     assert 'all' not in choices and 0 < sum(c == 'own' for c in choices) < 4, choices
     plan = AnswerPlan(m)
