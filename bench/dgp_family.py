@@ -261,8 +261,10 @@ def run_system(sysm: System, duration_s: float, last_s: float) -> dict:
 # ------------------------------------------------------------------------------ report
 
 
-def report(results: list, tag: str, where: str, quick: bool, wall: float) -> str:
-    lines = [f'# D-GP synthetic family: {tag}{" (quick)" if quick else ""}', '',
+def report(results: list, tag: str, where: str, quick: bool, wall: float,
+           offset: int = 0) -> str:
+    new = f', seeds +{offset} (systems of the same kind never developed on)' if offset else ''
+    lines = [f'# D-GP synthetic family: {tag}{" (quick)" if quick else ""}{new}', '',
              f'dgp_ros from `{where}`; defaults in line (`refit_mode=sync`)'
              f'{"; besides them " + str(PARAMS) if PARAMS else ""}; '
              f"{RATE_HZ:.0f} Hz, noise {100 * NOISE:.0f} % of each output's RMS. "
@@ -327,8 +329,9 @@ def main(argv=None) -> int:
                                f'{"_" + a.systems.replace(",", "-") if a.systems else ""}'
                                f'{"_seed+%d" % a.seed_offset if a.seed_offset else ""}')
     write(base, {'tag': tag, 'dgp_ros': where, 'quick': a.quick, 'wall_s': wall,
-                 'results': results}, report(results, tag, where, a.quick, wall),
-          'dgp_family' if a.section else None, a.quick, wall, __file__)
+                 'results': results}, report(results, tag, where, a.quick, wall, a.seed_offset),
+          (('dgp_family' + ('_new_seeds' if a.seed_offset else '')) if a.section
+           else None), a.quick, wall, __file__)
     return 0
 
 
