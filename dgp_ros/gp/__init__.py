@@ -7,8 +7,9 @@ damping_matrix / certificate / recertify / update / save / load.
 Pieces, one module each: ``kernels`` (the SE kernel, element structure), ``means`` (passive prior
 means), ``posterior`` (exact inference), ``hyper`` (hyper-parameter learning), ``passivity`` (the
 registry of passivity modes and their policies; ``certified`` and ``verify`` for the structural
-proof), ``persistence`` (model files), ``models`` (the estimators), ``joint_element`` (the
-per-joint element of D learned from every sample: a reduced-rank GP on each joint's velocity).
+proof), ``persistence`` (model files), ``models`` (the estimators; ``fitted``: their fitted
+attributes), ``joint_element`` (the per-joint element of D learned from every sample: a
+reduced-rank GP on each joint's velocity).
 """
 from . import joint_element  # noqa: F401 - registers its prior mean for model files
 from .kernels import KINDS, se_ard, se_bound
