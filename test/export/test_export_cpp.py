@@ -231,16 +231,19 @@ def _cpu_has(flag):
         return False
 
 
-@pytest.mark.parametrize('variant', ['scalar', 'avx', 'avx512', 'clang++'])
+@pytest.mark.parametrize('variant', ['scalar', 'no-dispatch', 'avx', 'avx512', 'clang++'])
 def test_other_builds(built, tmp_path, variant):
     """
     Every build gives the same answers.
 
-    The scalar fallback (no vector extensions), the vector widths of AVX (4 lanes) and AVX-512
-    (8; the default -O2 build has 2), and clang++.
+    The scalar fallback (no vector extensions), the -O2 build's own 2 lanes without the choice
+    at run time (an x86 -O2 build takes the processor's AVX2 or AVX-512 lanes where it has
+    them), the vector widths of AVX (4 lanes) and AVX-512 (8), and clang++.
     """
     spec, model, _, _, path = built['full_arm']
     cxx, flags = CXX, ('-O2', '-DDGP_EXPORT_SCALAR')
+    if variant == 'no-dispatch':
+        flags = ('-O2', '-DDGP_EXPORT_NO_DISPATCH')
     if variant.startswith('avx'):
         if not _cpu_has('avx512f' if variant == 'avx512' else 'avx'):
             pytest.skip(f'this CPU has no {variant.upper()}')
