@@ -53,7 +53,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 #: simulated flights (about 1.4 s each to make again): out/ of the checkout
 CACHE = os.path.join(REPO, 'out', 'a320_family_cache')
-SEED_BASE = 20241
+SEED_BASE = DEVELOPED_SEED = 20241
 FLIGHTS = 24
 MAX_DRAWS = 30
 STALL_DEG = 15.0
@@ -245,7 +245,9 @@ def _elements_at(course: list, t: float):
 def report(results: list, tag: str, where: str, quick: bool, wall: float) -> str:
     ok = [r for r in results if 'error' not in r]
     npass = sum(passes(r) for r in ok)
-    lines = [f'# A320 random family: {tag}{" (quick)" if quick else ""}'
+    seed = '' if SEED_BASE == DEVELOPED_SEED else \
+        f', seed {SEED_BASE} (flights never developed on)'
+    lines = [f'# A320 random family: {tag}{" (quick)" if quick else ""}{seed}'
              f'{" (probe: stalled draws flown to touch-down)" if KEEP_STALLS else ""}', '',
              f'dgp_ros from `{where}`; defaults in line (`refit_mode=sync`)'
              f'{"; besides them " + str(PARAMS) if PARAMS else ""}, one step ahead, '
@@ -300,6 +302,7 @@ def report(results: list, tag: str, where: str, quick: bool, wall: float) -> str
 
 
 def main(argv=None) -> int:
+    global KEEP_STALLS, SEED_BASE
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     ap.add_argument('--quick', action='store_true', help='the first 2 flights')
     ap.add_argument('--flights', default='', help='comma-separated indices (default: all)')
@@ -307,10 +310,14 @@ def main(argv=None) -> int:
     ap.add_argument('--keep-stalls', action='store_true',
                     help='probe: fly stalled draws to touch-down instead of drawing again')
     ap.add_argument('--cache', default=CACHE)
+    ap.add_argument('--seed-base', type=int, default=SEED_BASE,
+                    help=f"the flights' seed (default {SEED_BASE}; another: flights never "
+                         'developed on, their own section)')
     add_options(ap, 'a320_family')
     a = ap.parse_args(argv)
-    global KEEP_STALLS
     KEEP_STALLS = a.keep_stalls
+    new = a.seed_base != SEED_BASE
+    SEED_BASE = a.seed_base
     parse_set(a.set, PARAMS)
     idx = ([int(x) for x in a.flights.split(',')] if a.flights else
            list(range(2 if a.quick else FLIGHTS)))
@@ -353,10 +360,12 @@ def main(argv=None) -> int:
         return 0
     os.makedirs(a.out, exist_ok=True)
     out = os.path.join(a.out, f'a320_family_{tag}{"_quick" if a.quick else ""}'
-                       f'{"_stalls" if KEEP_STALLS else ""}{"_" + a.flights if a.flights else ""}')
+                       f'{"_stalls" if KEEP_STALLS else ""}{"_" + a.flights if a.flights else ""}'
+                       f'{"_seed%d" % SEED_BASE if new else ""}')
     write(out, {'tag': tag, 'dgp_ros': where, 'quick': a.quick, 'wall_s': wall, 'bars': BARS,
                 'results': results}, report(results, tag, where, a.quick, wall),
-          'a320_family' if a.section else None, a.quick, wall, __file__)
+          ('a320_family' + ('_new_seeds' if new else '')) if a.section else None, a.quick,
+          wall, __file__)
     return 0
 
 
