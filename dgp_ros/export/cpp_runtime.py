@@ -61,7 +61,7 @@ inline double tanh_over(double a, double eps) noexcept {
 #: vector than the registers is split by the compiler, and ran 1.3x (-O2) to 5x (AVX2) slower).
 #: On x86 built for less than AVX-512 (plain -O2), the 4- and 8-lane versions are compiled for
 #: AVX2 and AVX-512 too and the processor's best is taken at run time (``__builtin_cpu_supports``,
-#: as numpy and OpenBLAS do): the real Panda's 49-element Full-D 63 -> 16 us per call at -O2.
+#: as numpy and OpenBLAS do): the real Panda's 49-element Full-D 63 -> 17 us per call at -O2.
 #: Each lane is one element summed over j in the same order at every width: the same answers
 #: up to the contraction of a multiply-add. ``DGP_EXPORT_NO_DISPATCH``: the compile-time width.
 KERNEL = Template(r"""

@@ -181,8 +181,7 @@ def _forward_error(structure: Structure, start: Hyper, Qd, resid, X, Y, test, **
     """
     train = np.arange(test[0])
     h, info = learn_hyper(structure, start, Qd[train], resid[train], warm=False, **learn_kw)
-    return (_fold_error(structure, h, X[:test[-1] + 1], Y[:test[-1] + 1], [test]),
-            int(info.get('evaluations', 0)))
+    return _fold_error(structure, h, X, Y, [test]), int(info.get('evaluations', 0))
 
 
 def _couplings_earn(m: int, pick: str, err: dict, forward: dict) -> bool:
