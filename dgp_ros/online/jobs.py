@@ -288,6 +288,7 @@ class Refits:
         base = None if model is None else model.snapshot(variance=False)
         return RefitJob('fit', dataclasses.replace(cfg), win.seq, self._generation, last_t,
                         Q=Q, T=T, optimize=optimize, hyper=st.with_prior(self._hyper),
+                        hyper_rows=win.even_arrays() if optimize else None,
                         warm=warm, kw=st.model_kw(cfg), correction=st.correction(),
                         target_gen=win.target_gen, source=base)
 

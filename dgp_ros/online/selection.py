@@ -41,8 +41,11 @@ class Buffer:
     a new row replaces one of the two closest rows (velocity distance in ``scale`` units, the
     one whose second-nearest neighbour is closer), so the buffer keeps the velocities that were
     visited, not the last seconds; O(capacity N) per row with a cached distance matrix.
-    ``arrays`` reads the rows oldest first (the fit holds the newest out to choose the
-    elements of D: ``gp.select``).
+    ``policy='even'``: rows spread evenly in time over the whole run, in bounded memory: every
+    ``stride``-th row offered is kept; when full, every other row goes (oldest first) and the
+    stride doubles (the sample the hyper-parameters and the elements of D are learned on:
+    ``Window.even_arrays``). ``arrays`` reads the rows oldest first (the fit holds the newest
+    out to choose the elements of D: ``gp.select``).
     Extras: the raw residual (N,) and the correction columns (N, C) of each row, kept so that
     the targets can be recomputed when the parametric part is refitted (``retarget``).
     """
@@ -60,9 +63,16 @@ class Buffer:
         self._count = 0
         self._d: Optional[np.ndarray] = None       # coverage: distances between slots
         self.scale: Optional[np.ndarray] = None    # coverage: velocity scale (N,), set when full
+        self._stride, self._offered = 1, 0         # even: keep one row offered in ``_stride``
 
     def append(self, q, t, extra=None) -> int:
-        """Store a row (replacing one when full, by the policy); return its slot."""
+        """Store a row (replacing one when full, by the policy); return its slot (-1: not kept)."""
+        if self.policy == 'even':
+            self._offered += 1
+            if self._offered % self._stride:
+                return -1
+            if self.size == self.capacity:
+                self._halve()
         if self.size < self.capacity:
             i = (self._start + self.size) % self.capacity
             self.size += 1
@@ -81,6 +91,18 @@ class Buffer:
         elif self.policy == 'coverage' and self.size == self.capacity:
             self._init_distances()
         return i
+
+    def _halve(self) -> None:
+        """Keep every other row, oldest first (the newest stays), and double the stride."""
+        idx = (self._start + np.arange(self.size)) % self.capacity
+        keep = idx[np.argsort(self._age[idx], kind='stable')][1::2]
+        k = len(keep)
+        for a in ('_q', '_t', '_r', '_y', '_age'):
+            arr = getattr(self, a)
+            if arr is not None:
+                arr[:k] = arr[keep]
+        self._start, self.size = 0, k
+        self._stride *= 2
 
     def _store_extra(self, i: int, r, y) -> None:
         if self._r is None:
@@ -166,7 +188,7 @@ class Buffer:
     def arrays(self) -> Tuple[np.ndarray, np.ndarray]:
         """Return copies of (Qd, Tau), (size, N) each, oldest first."""
         idx = (self._start + np.arange(self.size)) % self.capacity
-        if self.policy == 'coverage':
+        if self.policy != 'recency':
             idx = idx[np.argsort(self._age[idx], kind='stable')]
         return self._q[idx].copy(), self._t[idx].copy()
 

@@ -47,6 +47,9 @@ class RefitJob:
     hyper: Optional[dict] = None
     warm: bool = False
     model: object = None
+    # 'fit' with optimize: (Qd, Tau) spread evenly over the run, what the hyper-parameters and
+    # the elements are learned on (``Window.even_arrays``)
+    hyper_rows: Optional[tuple] = None
     # 'recertify': the served model ``model`` is a copy of; 'fit': a snapshot of the served
     # model when the job started (the opponent of the held-out check)
     source: object = None
@@ -174,7 +177,8 @@ def run_job(job: RefitJob, factory: Callable) -> RefitResult:
             # first, the A320's refits spent most of their time in the branch-and-bound
             # (quiet: 7 s of wall per refit beside the learner's own loop; two busy processes:
             # 24 s) and a learner short of CPU served its first, 20-sample model for 20 s
-            model.fit(job.Q, job.T, optimize=job.optimize, prove=False)
+            model.fit(job.Q, job.T, optimize=job.optimize, prove=False,
+                      hyper_rows=job.hyper_rows)
             model.correction_ = job.correction
             ok, why = sane(model, job.Q, job.T)
             if not ok:
