@@ -177,8 +177,8 @@ def run_job(job: RefitJob, factory: Callable) -> RefitResult:
             # first, the A320's refits spent most of their time in the branch-and-bound
             # (quiet: 7 s of wall per refit beside the learner's own loop; two busy processes:
             # 24 s) and a learner short of CPU served its first, 20-sample model for 20 s
-            model.fit(job.Q, job.T, optimize=job.optimize, prove=False,
-                      hyper_rows=job.hyper_rows)
+            extra = {} if job.hyper_rows is None else {'hyper_rows': job.hyper_rows}
+            model.fit(job.Q, job.T, optimize=job.optimize, prove=False, **extra)
             model.correction_ = job.correction
             ok, why = sane(model, job.Q, job.T)
             if not ok:

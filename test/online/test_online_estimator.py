@@ -541,8 +541,8 @@ class _WildOnce(FullDGP):
     fits = 0
     _wild = False
 
-    def fit(self, Qd, Tau, optimize=True, prove=True):
-        super().fit(Qd, Tau, optimize, prove)
+    def fit(self, Qd, Tau, optimize=True, prove=True, **kw):
+        super().fit(Qd, Tau, optimize, prove, **kw)
         if optimize:                   # a refit job's candidate (absorbs keep the hyper)
             _WildOnce.fits += 1
             self._wild = _WildOnce.fits == 2
@@ -581,11 +581,11 @@ class _UnprovenFirst(FullDGP):
 
     fits = 0
 
-    def fit(self, Qd, Tau, optimize=True, prove=True):
+    def fit(self, Qd, Tau, optimize=True, prove=True, **kw):
         type(self).fits += 1
         if type(self).fits == 1:
             raise RuntimeError('no proof: box budget exhausted')
-        return super().fit(Qd, Tau, optimize, prove)
+        return super().fit(Qd, Tau, optimize, prove, **kw)
 
 
 def test_a_first_fit_that_fails_is_retried_without_a_refit_period():

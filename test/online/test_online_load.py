@@ -44,9 +44,9 @@ def test_quick_soak_runs_and_holds_the_invariant(tmp_path):
 def _slow_factory(event):
     """Make a model factory whose fits wait for ``event`` (a refit that is 'slow')."""
     class Slow(DiagDGP):
-        def fit(self, Q, T, optimize=True, prove=True):
+        def fit(self, Q, T, optimize=True, prove=True, **kw):
             event.wait(30)
-            return super().fit(Q, T, optimize=optimize, prove=prove)
+            return super().fit(Q, T, optimize=optimize, prove=prove, **kw)
     return lambda kind, **kw: Slow(**kw)
 
 
