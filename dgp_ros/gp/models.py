@@ -23,14 +23,14 @@ from ._validation import as_matrix, as_pair, in_chunks
 from .blend import Grounds
 from .fitted import Fitted
 from .hyper import (apply_fixed_noise, hyper_from_params, initial_hyper, learn_hyper,
-                    MIN_NOISE_VAR, persistent as hyper_persistent, scales)
+                    MIN_NOISE_VAR, scales)
 from .kernels import KINDS, Structure
 from .means import make_mean
 from .passivity import policy_class
 from .persistence import read_model, rebuild_correction, save_model
 from .policy import Certificate, PolicyOptions
 from .posterior import Posterior
-from .select import select_elements
+from .select import keeps_all, select_elements
 
 __all__ = ['ArdGP', 'DiagDGP', 'FullDGP', 'make_model', 'model_class', 'load_model']
 
@@ -225,10 +225,8 @@ class _DGP(Fitted):
         if hyper_rows is None or self.couplings != 'evidence':
             return Qd, Tau
         Qh, Th = as_pair(*hyper_rows)
-        X = Qd / hp.sx
         if (Qh.shape[0] < min(Qd.shape[0], MIN_HYPER_ROWS) or Qh.shape[1] != Qd.shape[1]
-                or structure.kind == 'ard'
-                or any(hyper_persistent(structure, X, e) for e in range(structure.E))):
+                or keeps_all(structure, Qd / hp.sx)):
             return Qd, Tau
         return Qh, Th
 

@@ -50,8 +50,8 @@ from .hyper import learn_hyper, persistent as hyper_persistent, PINNED_LOG_LS
 from .kernels import Structure
 from .posterior import Hyper
 
-__all__ = ['select_elements', 'choice_summary', 'element_masks', 'row_choices', 'CHOICES',
-           'FOLDS', 'MARGINS', 'MIN_TRAIN', 'MIN_HOLDOUT']
+__all__ = ['select_elements', 'choice_summary', 'element_masks', 'row_choices', 'keeps_all',
+           'CHOICES', 'FOLDS', 'MARGINS', 'MIN_TRAIN', 'MIN_HOLDOUT']
 
 CHOICES = ('none', 'own', 'all')
 #: contiguous blocks of the rows (in time order), each held out in turn
@@ -108,6 +108,17 @@ def row_choices(structure: Structure, hp: Hyper) -> list:
     return out
 
 
+def keeps_all(structure: Structure, X: np.ndarray) -> bool:
+    """
+    Tell whether every output tries only ``'all'`` on standardized inputs X (n, N).
+
+    An ARD-GP, or an element whose feature stays away from zero in X (``hyper.persistent``: an
+    aircraft's airspeed); else every velocity reverses.
+    """
+    return structure.kind == 'ard' or any(hyper_persistent(structure, X, e)
+                                          for e in range(structure.E))
+
+
 def _candidates(structure: Structure, X: np.ndarray, reversing: bool = False) -> tuple:
     """
     Return the choice with GP elements to try on standardized inputs X (n, N).
@@ -126,8 +137,7 @@ def _candidates(structure: Structure, X: np.ndarray, reversing: bool = False) ->
     ``reversing`` (not an arm): ``'own'`` and ``'all'`` (the synthetic coupled systems of
     ``bench/dgp_family.py``: 4 axes one step ahead 0.35 -> 4e-5 at worst).
     """
-    if structure.kind == 'ard' or any(hyper_persistent(structure, X, e) for e in
-                                      range(structure.E)):
+    if keeps_all(structure, X):
         return ('all',)
     if reversing and structure.E > structure.N:
         return ('own', 'all')
