@@ -37,7 +37,6 @@ from __future__ import annotations
 
 from collections import deque
 import copy
-from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
 import numpy as np
@@ -45,20 +44,13 @@ from scipy.linalg import cho_factor, cho_solve
 
 from dgp_ros.gp.joint_element import ElementFit, M_BASIS
 
+from .coupling_track import COUPLING_RIDGE, CouplingTrack
 from .element_track import ElementTrack
+from .parametric import F, FAMILIES, friction_columns, ParametricFit
 from .statistics import nonnegative_part, Stats
 
-__all__ = ['LongHistory', 'ParametricFit', 'FRICTION_EPS', 'STRIBECK_VS', 'FAMILIES']
+__all__ = ['LongHistory', 'BLOCK_S', 'HALF_LIVES_S']
 
-#: Coulomb smoothing velocities (velocity units: rad/s on an arm)
-FRICTION_EPS = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2)
-#: Stribeck velocities and the smoothing of their sign
-STRIBECK_VS = (0.05, 0.2)
-EPS_S = 0.01
-F = 1 + len(FRICTION_EPS) + len(STRIBECK_VS)
-#: friction families -> their columns among the F per joint
-FAMILIES = {'none': [], 'viscous': [0], 'friction': list(range(1 + len(FRICTION_EPS))),
-            'friction+stribeck': list(range(F))}
 #: learning-time length of a statistics block (s), and the blocks scored by cross-validation
 BLOCK_S = 1.5
 FOLDS = 3
@@ -81,72 +73,6 @@ HALF_LIVES_S = (10.0, 30.0, 90.0)
 RECENT_MARGIN = 0.3
 
 
-def friction_columns(v: np.ndarray) -> np.ndarray:
-    """Friction columns of velocities v (k,) -> (k, F) (module docstring)."""
-    v = np.asarray(v, float)
-    cols = [v] + [np.tanh(v / e) for e in FRICTION_EPS]
-    t = np.tanh(v / EPS_S)
-    cols += [t * np.exp(-(v / vs) ** 2) for vs in STRIBECK_VS]
-    return np.stack(cols, axis=-1)
-
-
-@dataclass
-class ParametricFit:
-    """
-    A fitted structure: ``family``, ``offsets``, ``conservative`` and the coefficients.
-
-    ``offsets``: per joint, whether it has one ((N,) bools; a bool for all joints alike).
-
-    coef : (N, F) friction (>= 0); bias : (N,) offsets; theta : (C,) correction; scores :
-    cross-validation score of every candidate ``(family, offsets, conservative) -> score``
-    (empty before there are blocks to score); basis : the correction's basis or None.
-    """
-
-    family: str
-    offsets: bool
-    conservative: bool
-    coef: np.ndarray
-    bias: np.ndarray
-    theta: np.ndarray
-    basis: object = None
-    scores: dict = field(default_factory=dict)
-    samples: int = 0
-    memory: str = 'all'
-    element: Optional[ElementFit] = None
-
-    def label(self) -> str:
-        on = np.flatnonzero(np.broadcast_to(np.asarray(self.offsets, bool), self.bias.shape))
-        parts = [self.family, 'no offsets' if not on.size else 'offsets' if
-                 on.size == self.bias.size else 'offsets on ' + ' '.join(str(j) for j in on)]
-        if self.basis is not None:
-            parts.append('correction' if self.conservative else 'no correction')
-        if self.memory != 'all':
-            parts.append(f'{self.memory} memory')
-        if self.element is not None and self.element.label():
-            parts.append(self.element.label())
-        return ', '.join(parts)
-
-    def friction_mean(self):
-        """Return the friction as a frozen passive prior mean of the D-GP."""
-        from dgp_ros.gp.means import BasisFrictionMean
-        base = BasisFrictionMean(self.coef, FRICTION_EPS, EPS_S, STRIBECK_VS)
-        return base if self.element is None else self.element.mean(base)
-
-    def train_correction(self, Yt: Optional[np.ndarray]) -> np.ndarray:
-        """Return what the non-damping parts explain of samples with columns Yt (k, N, C)."""
-        if Yt is None or not self.conservative or self.theta.size == 0:
-            return np.broadcast_to(self.bias, (1 if Yt is None else Yt.shape[0],
-                                               self.bias.size))
-        return np.einsum('knc,c->kn', Yt, self.theta) + self.bias
-
-    def correction(self):
-        """Return the applied non-damping part as a :class:`~.conservative.Correction`."""
-        from .conservative import Correction
-        use = self.conservative and self.basis is not None
-        return Correction(self.basis if use else None, self.theta if use else np.zeros(0),
-                          self.bias)
-
-
 class LongHistory:
     """
     Sufficient statistics of the learned history and the structure selection (module docstring).
@@ -165,16 +91,25 @@ class LongHistory:
     elements : bool
         Whether each joint may carry an element of D learned from every sample
         (:mod:`~dgp_ros.dynamics.element_track`).
+    couplings : bool
+        Whether velocities that never near zero carry couplings (``gp.coupled``;
+        :mod:`~dgp_ros.dynamics.coupling_track`): a system that is not an arm. Not with
+        ``elements``.
 
     """
 
     def __init__(self, N: int, basis=None, default_family: str = 'friction',
-                 offsets: bool = True, elements: bool = True):
+                 offsets: bool = True, elements: bool = True, couplings: bool = False):
+        if couplings and elements:
+            raise ValueError('long history: couplings and elements are for different systems')
         self.N = int(N)
         self.basis = basis
         self.C = 0 if basis is None else int(basis.C)
-        self.L = F + 1 + self.C
-        #: the statistics' columns: the parametric ones, then the element's (module docstring)
+        self.coupling = CouplingTrack(self.N) if couplings else None
+        self.K = 0 if self.coupling is None else self.coupling.K
+        self.L = F + 1 + self.C + self.K
+        #: the statistics' columns: the parametric ones (friction, offset, correction,
+        #: couplings), then the element's (module docstring)
         self.Lx = self.L + (M_BASIS if elements else 0)
         self.element = ElementTrack(self.N, self.Lx, self.Lx - self.L)
         self._last_t: Optional[float] = None
@@ -186,11 +121,16 @@ class LongHistory:
         self._cur = Stats(self.N, self.Lx)
         self._rows: List[tuple] = []
         self._block_t0: Optional[float] = None
-        P = self.N * F + self.N + self.C
-        self.P = P
-        self._idx = [np.r_[np.arange(j * F, (j + 1) * F), self.N * F + j,
-                           self.N * F + self.N + np.arange(self.C)] for j in range(self.N)]
+        self._layout()
         self.samples = 0
+
+    def _layout(self) -> None:
+        """Lay out the unknowns: friction per joint, offsets, the shared correction, couplings."""
+        N, K, k0 = self.N, self.K, self.N * F + self.N + self.C
+        self.P = k0 + N * K
+        self._idx = [np.r_[np.arange(j * F, (j + 1) * F), N * F + j,
+                           N * F + N + np.arange(self.C), k0 + j * K + np.arange(K)]
+                     for j in range(N)]
 
     # ------------------------------------------------------------------ data
     def push(self, stamp: float, q, qd, qdd, r) -> Optional[np.ndarray]:
@@ -225,11 +165,29 @@ class LongHistory:
         if not self._rows:
             return
         rows, self._rows = self._rows, []
-        E = self.element.columns(np.array([v for *_, v in rows]), self._last_t)     # (k, N, M)
+        V = np.array([v for *_, v in rows])
+        E = self.element.columns(V, self._last_t)                                 # (k, N, M)
+        if self.coupling is not None:
+            dead = self.coupling.observe(V)
+            if dead:
+                self._drop_columns(self.coupling.drop_slices(dead))
+            Cc = self.coupling.columns(V)                                         # (k, K)
+            E = np.concatenate([np.broadcast_to(Cc[:, None, :], (V.shape[0], self.N, self.K)),
+                                E], axis=2)
         At = np.concatenate([np.array([a for a, *_ in rows]), E], axis=2)
         same = all(d is a for a, d, *_ in rows)        # training columns are the applied ones
         Ad = At if same else np.concatenate([np.array([d for _, d, *_ in rows]), E], axis=2)
         self._cur.add_rows(At, Ad, np.array([r for _, _, r, _ in rows]))
+
+    def _drop_columns(self, idx: np.ndarray) -> None:
+        """Delete coupling features ``idx`` (of the K) from every statistics block (exact)."""
+        cols = F + 1 + self.C + idx
+        for st in [self._older, self._cur, *self._recent, *self._blocks, *self.element.halves]:
+            st.drop(cols)
+        self.K -= idx.size
+        self.L -= idx.size
+        self.Lx -= idx.size
+        self._layout()
 
     def _close_block(self, stamp: float) -> None:
         self._flush()
@@ -254,17 +212,19 @@ class LongHistory:
         c._blocks = deque(b.copy() for b in self._blocks)
         c._cur = self._cur.copy()
         c.element = self.element.copy()
+        c.coupling = None if self.coupling is None else self.coupling.copy()
         c._rows = []
         return c
 
     # ------------------------------------------------------------------ fitting
     def _total(self, blocks, with_current: bool, memory: int = -1) -> Stats:
         """Add ``blocks`` to the whole history (memory -1) or to a recent one (its index)."""
+        if with_current:
+            self._flush()           # first: a flush may drop coupling columns everywhere
         t = (self._older if memory < 0 else self._recent[memory]).copy()
         for b in blocks:
             t += b
         if with_current:
-            self._flush()
             t += self._cur
         return t
 
@@ -286,7 +246,13 @@ class LongHistory:
             m[j * F + np.asarray(cols, int)] = True
             m[self.N * F + j] = offs[j]
         if conservative and self.C:
-            m[self.N * F + self.N:] = True
+            m[self.N * F + self.N:self.N * F + self.N + self.C] = True
+        c = None if self.coupling is None else self.coupling.serving()
+        if c is not None:               # the most persistent column's couplings: always
+            size = self.K // len(self.coupling.cols)
+            k0 = self.N * F + self.N + self.C
+            for j in range(self.N):
+                m[k0 + j * self.K + c * size + np.arange(size)] = True
         return m
 
     def _identifiable(self, G: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -314,10 +280,17 @@ class LongHistory:
             return theta
         Gs = G[np.ix_(idx, idx)].copy()
         ridge = np.full(idx.size, 0.0)
-        is_c = idx >= self.N * F + self.N
+        k0 = self.N * F + self.N + self.C
+        is_c = (idx >= self.N * F + self.N) & (idx < k0)
         ridge[is_c] = getattr(self.basis, 'RIDGE', 0.0)
         d = np.diag(Gs).copy()
-        Gs[np.diag_indices_from(Gs)] += ridge + 1e-9 * d + 1e-12 * (d.mean() + 1e-300)
+        is_k = idx >= k0
+        if is_k.any():          # the couplings (module constant); not the constant feature
+            first = (idx - k0) % max(self.K, 1) == 0
+            ridge[is_k & ~first] = COUPLING_RIDGE * d[is_k & ~first] / max(n, 1)
+        dn = d[~is_k]
+        Gs[np.diag_indices_from(Gs)] += ridge + 1e-9 * d + 1e-12 * (
+            (dn.mean() if dn.size else 0.0) + 1e-300)
         bounded = idx < self.N * F
         x = cho_solve(cho_factor(Gs), b[idx])
         if np.any(x[bounded] < 0.0):
@@ -369,7 +342,9 @@ class LongHistory:
             if k >= 0:
                 return self._fit(self._total(self._blocks, True, k), best, scores, total.n, k)
         else:
-            best = (self.default_family if total.n else 'none', False, bool(self.C))
+            # the couplings alone where a column persists (an aircraft's: they carry its forces)
+            family = 'none' if self.K or not total.n else self.default_family
+            best = (family, False, bool(self.C))
         return self._fit(total, best, scores)
 
     def _memory(self, best: tuple, folds: list, at: list, scale: np.ndarray) -> int:
@@ -398,7 +373,8 @@ class LongHistory:
 
         recent = [score(k) for k in range(len(HALF_LIVES_S))]
         k = int(np.argmin(recent))
-        return k if recent[k] < (1.0 - RECENT_MARGIN) * score(-1) else -1
+        margin = 0.0 if self.K else RECENT_MARGIN
+        return k if recent[k] < (1.0 - margin) * score(-1) else -1
 
     def _choose(self, scores: dict) -> tuple:
         """
@@ -436,6 +412,20 @@ class LongHistory:
         """Fit one given structure on the whole history."""
         return self._fit(self._total(self._blocks, True), (family, offsets, conservative), {})
 
+    def refit(self, fit: ParametricFit) -> ParametricFit:
+        """
+        Refit ``fit``'s structure and memory on the history as it is now (no selection).
+
+        What keeps the couplings of a persistent column current between selections (they
+        carry whole forces, and a selection comes only when the history grew by a quarter).
+        """
+        k = -1 if fit.memory == 'all' else \
+            [f'{h:g} s' for h in HALF_LIVES_S].index(fit.memory)
+        out = self._fit(self._total(self._blocks, True, k),
+                        (fit.family, fit.offsets, fit.conservative), fit.scores, None, k)
+        out.samples = fit.samples               # the selection's growth counts from its own
+        return out
+
     def _fit(self, total: Stats, cand: tuple, scores: dict, samples=None,
              memory: int = -1) -> ParametricFit:
         """Fit ``cand`` on ``total`` (the whole history, or recent memory ``memory``)."""
@@ -445,12 +435,16 @@ class LongHistory:
         N = self.N
         offs = np.broadcast_to(np.asarray(cand[1], bool), (N,)) & \
             (theta[N * F:N * F + N] != 0.0)
+        k0 = N * F + N + self.C
+        coupling = None
+        if self.K and np.any(theta[k0:]):
+            coupling = (self.coupling.fitted_basis(), theta[k0:].reshape(N, self.K).copy())
         return ParametricFit(cand[0], offs, bool(cand[2]),
                              np.maximum(theta[:N * F].reshape(N, F), 0.0),
-                             theta[N * F:N * F + N].copy(), theta[N * F + N:].copy(),
+                             theta[N * F:N * F + N].copy(), theta[N * F + N:k0].copy(),
                              self.basis, scores, total.n if samples is None else samples,
                              'all' if memory < 0 else f'{HALF_LIVES_S[memory]:g} s',
-                             self._element(mask, theta, total, memory))
+                             self._element(mask, theta, total, memory), coupling)
 
     def _element(self, mask: np.ndarray, theta: np.ndarray, total: Stats,
                  memory: int) -> Optional[ElementFit]:

@@ -106,6 +106,17 @@ class Stats:
             c.Gd, c.bd = self.Gd.copy(), self.bd.copy()
         return c
 
+    def drop(self, cols: np.ndarray) -> None:
+        """Delete local columns ``cols`` (the others' statistics are unchanged: exact)."""
+        shared = self.Gd is self.Gt
+        self.Gt = np.delete(np.delete(self.Gt, cols, axis=1), cols, axis=2)
+        self.bt = np.delete(self.bt, cols, axis=1)
+        if shared:
+            self.Gd, self.bd = self.Gt, self.bt
+        else:
+            self.Gd = np.delete(np.delete(self.Gd, cols, axis=1), cols, axis=2)
+            self.bd = np.delete(self.bd, cols, axis=1)
+
     # ------------------------------------------------------------------ the element's part
     def element_train(self, j: int, theta: np.ndarray, L: int, cols: np.ndarray, offset: int):
         """

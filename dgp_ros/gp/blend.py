@@ -20,23 +20,68 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ['blend', 'Grounds', 'GAINS']
+__all__ = ['blend', 'prior_answer', 'Grounds', 'GAINS']
 
 #: the gains a model carries, in this order (``grounds_`` keys; the online learner's ``Skill``)
 GAINS = ('model_weight', 'prior_gain', 'confidence')
 
 
-def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], prior_diag: np.ndarray,
+def prior_answer(mean, Q: np.ndarray, a: Optional[np.ndarray] = None, want_D: bool = False):
+    """
+    Return (tau (k, N), D (k, N, N) or None): the fallback, the prior ``mean`` times its gains.
+
+    a : (N,) gains in [0, 1] (None: 1). A diagonal prior gives ``diag(a m_d(Q)) Q``; a coupled
+    one (``gp.coupled``) ``a * force`` row by row, projected onto ``q^T tau >= 0`` where the
+    gains made it non-passive (its matrix gets the projection's ``lam I``): passive either way.
+    """
+    Q = np.asarray(Q, float)
+    if mean.is_diagonal:
+        d = np.asarray(mean.diag(Q), float)
+        if a is not None:
+            d = d * a
+        D = None
+        if want_D:
+            D = np.zeros(d.shape + (d.shape[-1],))
+            D[:, np.arange(d.shape[-1]), np.arange(d.shape[-1])] = d
+        return d * Q, D
+    from .policy import projection_lambda
+    tau = np.asarray(mean.force(Q), float)
+    D = np.asarray(mean.matrix(Q), float) if want_D else None
+    if a is not None:
+        tau = tau * a
+        lam = projection_lambda(Q, tau)
+        tau = tau + lam[:, None] * Q
+        if D is not None:
+            D = D * a[:, None]
+            D[:, np.arange(Q.shape[1]), np.arange(Q.shape[1])] += lam[:, None]
+    return tau, D
+
+
+def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], mean,
           w: np.ndarray, a: np.ndarray, per_joint: bool):
     """
     Blend answers toward the fallback (module docstring).
 
     Q, tau : (k, N) velocities and the model's answers; D : (k, N, N) its damping matrices (None:
-    not computed; then ``per_joint`` must be False); prior_diag : (k, N) ``m_d(Q)`` >= 0; w, a :
-    (N,) the model's weight and the prior's gain. ``per_joint``: the congruence blend (keeps a
-    PSD symmetric part), else one scalar ``min(w)`` per answer (keeps ``q^T tau >= 0`` of a
-    passive answer). Returns (tau', D' or None).
+    not computed; then ``per_joint`` must be False); mean : the passive prior; w, a : (N,) the
+    model's weight and the prior's gain. ``per_joint``: the congruence blend (keeps a PSD
+    symmetric part; a diagonal prior only), else one scalar ``min(w)`` per answer (keeps
+    ``q^T tau >= 0`` of a passive answer). Returns (tau', D' or None).
     """
+    if not mean.is_diagonal:
+        # joint by joint, then projected: a coupled prior carries whole forces (an aircraft's
+        # lift), and one scalar min(w) let a side force's weight of 0.1 pull the lift's answer
+        # toward its fallback
+        from .policy import projection_lambda
+        tp, Dp = prior_answer(mean, Q, a, D is not None)
+        tb = w * tau + (1.0 - w) * tp
+        lam = projection_lambda(Q, tb)
+        Db = None
+        if D is not None:
+            Db = w[:, None] * D + (1.0 - w)[:, None] * Dp
+            Db[:, np.arange(Q.shape[1]), np.arange(Q.shape[1])] += lam[:, None]
+        return tb + lam[:, None] * Q, Db
+    prior_diag = np.asarray(mean.diag(Q), float)
     if per_joint and D is not None:
         s = np.sqrt(w)
         Db = D * (s[:, None] * s[None, :])
@@ -89,7 +134,6 @@ class Grounds:
 
     def apply(self, mean, Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray],
               guarantee: str):
-        """Blend (tau, D) at Q (k, N) toward ``a mean.diag(Q) Q``; returns (tau', D')."""
-        dg = np.asarray(mean.diag(Q), float)
-        return blend(Q, tau, D, dg, self.w, self.a,
+        """Blend (tau, D) at Q (k, N) toward ``a mean(Q)`` (``prior_answer``); (tau', D')."""
+        return blend(Q, tau, D, mean, self.w, self.a,
                      self.per_joint(guarantee) and D is not None)

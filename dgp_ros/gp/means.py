@@ -57,6 +57,9 @@ class PriorMean:
 
     name = ''
     has_damping = True
+    #: the damping matrix is ``diag(m_d(qd))`` (every mean here; not ``gp.coupled``'s): what
+    #: the global certificates (``diag(m_inf) - B`` copositive) need
+    is_diagonal = True
 
     def __init__(self, bias: bool = False):
         self.bias_enabled = bool(bias)
@@ -77,9 +80,25 @@ class PriorMean:
     def diag(self, Qd: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def matrix(self, Qd: np.ndarray) -> np.ndarray:
+        """Return the prior's damping matrix ``M(qd)`` (k, N, N), ``force = M qd``."""
+        d = np.asarray(self.diag(Qd), float)
+        M = np.zeros(d.shape + (d.shape[-1],))
+        idx = np.arange(d.shape[-1])
+        M[..., idx, idx] = d
+        return M
+
     def diag_bounds(self, lo: np.ndarray, hi: np.ndarray):
         """Range ``(dlo, dhi)`` of ``m_d`` over boxes ``[lo, hi]`` (B, N) each; (B, N) each."""
         raise NotImplementedError  # pragma: no cover
+
+    def matrix_bounds(self, lo: np.ndarray, hi: np.ndarray):
+        """Range of ``M(qd)`` over boxes ``[lo, hi]`` (B, N): (B, N, N) each (a proof's input)."""
+        dlo, dhi = self.diag_bounds(lo, hi)
+        idx = np.arange(dlo.shape[-1])
+        Mlo, Mhi = np.zeros(dlo.shape + (dlo.shape[-1],)), np.zeros(dhi.shape + (dhi.shape[-1],))
+        Mlo[..., idx, idx], Mhi[..., idx, idx] = dlo, dhi
+        return Mlo, Mhi
 
     def diag_inf(self) -> np.ndarray:
         """``inf_qd m_d(qd)`` per joint, (N,): the margin a global certificate may use."""

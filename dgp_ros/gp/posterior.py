@@ -423,9 +423,12 @@ class Posterior:
         s, hp = self.structure, self.hyper
         X = Q / hp.sx
         k = X.shape[0]
-        D = np.zeros((k, s.N, s.N))
-        idx = np.arange(s.N)
-        D[:, idx, idx] = self.mean.diag(Q)
+        if self.mean.is_diagonal:
+            D = np.zeros((k, s.N, s.N))
+            idx = np.arange(s.N)
+            D[:, idx, idx] = self.mean.diag(Q)
+        else:
+            D = self.mean.matrix(Q)
         if Kel is not None:                             # a few queries: one einsum
             C = self._element_weights(Kel) * (hp.sy[:, None] / hp.sx[None, :])
             return D + (C if weight is None else weight[:, None, None] * C)

@@ -131,6 +131,8 @@ class Rebases:
             seq, generation, hyper = win.seq, self._refits.generation, self._refits.hyper
             if st.reselect_due():
                 st.reselect(win)        # retargets the window; the prior rides in the hyper
+            else:
+                st.refresh()            # couplings of a persistent column: kept current
             gen = win.target_gen
             Q, T = win.arrays()
             kw = dict(st.model_kw(cfg), hyperparams=st.with_prior(hyper))

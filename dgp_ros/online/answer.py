@@ -19,6 +19,8 @@ import numpy as np
 
 from dgp_ros.gp import passive_tolerance
 
+from dgp_ros.gp.blend import prior_answer
+
 from .grounds import blend
 from .plan import PlanCache
 from .snapshot import Snapshot
@@ -100,8 +102,7 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
             source[:] = 'model'
             conf[:] = 1.0 if snap.confidence is None else snap.confidence
             if mix:
-                dg = np.asarray(snap.prior.diag(Q), float)
-                tau, D = blend(Q, tau, D, dg, w, snap.prior_gain, per_joint)
+                tau, D = blend(Q, tau, D, snap.prior, w, snap.prior_gain, per_joint)
                 if not want_damping:
                     D = None
         except Exception as exc:        # noqa: BLE001 - the answer falls back to the prior
@@ -121,7 +122,7 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
 def _prior(snap: Optional[Snapshot], Q: np.ndarray, want_damping: bool,
            want_stddev: bool = True):
     """
-    (tau, std, D) of the fallback ``a diag(m_d(qd)) qd``: the passive prior times its gain.
+    (tau, std, D) of the fallback: the passive prior times its gain (``blend.prior_answer``).
 
     Zero before any snapshot, and where the prior has earned no gain yet (``grounds``).
     """
@@ -129,23 +130,18 @@ def _prior(snap: Optional[Snapshot], Q: np.ndarray, want_damping: bool,
     if not want_stddev:
         std = np.full((k, N), np.nan)           # not computed: nobody subscribes
     if snap is None or snap.prior is None:
-        d = np.zeros((k, N))
         if want_stddev:
             std = np.zeros((k, N))
+        tau, D = np.zeros((k, N)), (np.zeros((k, N, N)) if want_damping else None)
     else:
-        d = np.asarray(snap.prior.diag(Q), float)
-        if snap.prior_gain is not None:
-            d = d * snap.prior_gain
+        tau, D = prior_answer(snap.prior, Q, snap.prior_gain, want_damping)
         if want_stddev:
             std = np.broadcast_to(snap.prior_std, (k, N)).copy()
-    tau = d * Q
     if not np.isfinite(tau).all():
         bad = ~np.isfinite(tau).all(axis=1)
-        d[bad], tau[bad] = 0.0, 0.0
-    if not want_damping:
-        return tau, std, None
-    D = np.zeros((k, N, N))
-    D[:, np.arange(N), np.arange(N)] = d
+        tau[bad] = 0.0
+        if D is not None:
+            D[bad] = 0.0
     return tau, std, D
 
 
@@ -238,7 +234,7 @@ def _bound(snap: Snapshot, Q, tau, D, health, passivity: str):
         # exceeded (a larger limit never makes an answer within the learned one big)
         Qb = np.clip(Q[big], snap.velocity_box[0], snap.velocity_box[1])
         with np.errstate(invalid='ignore'):
-            prior = np.abs(np.asarray(snap.prior.diag(Qb), float) * Qb)
+            prior = np.abs(prior_answer(snap.prior, Qb)[0])
         prior = np.where(np.isfinite(prior), prior, 0.0)
         if snap.residual_bound is not None:
             # and never beyond what the data ever reached (a prior fitted to the first second

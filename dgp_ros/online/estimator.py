@@ -40,6 +40,7 @@ from .intake import Intake
 from .learner import FRONT_END, Learner
 from .plan import PlanCache
 from .snapshot import Snapshot
+from .stream_part import StreamPart
 
 __all__ = ['OnlineEstimator', 'Estimate']
 
@@ -88,6 +89,22 @@ class OnlineEstimator:
         self.clock = LearningClock()
         self._last_est = None               # the newest Estimate (or batch of Answers)
         self.health = Health()
+        self.stream: Optional[StreamPart] = None    # made at the first accepted message
+
+    def _stream_for(self, N: int) -> Optional[StreamPart]:
+        """
+        Return the stream part (``stream_part``) where it belongs, made once N is known.
+
+        A system that is not an arm (no ``inverse_dynamics``: an arm's path fakes couplings),
+        with the parametric part from every sample (``prior='auto'``, not the ARD baseline),
+        while learning (a frozen model answers as its file says, exactly); else None.
+        """
+        c = self.config
+        if not c.learning or c.inverse_dynamics or c.prior != 'auto' or c.model == 'ard':
+            self.stream = None
+        elif self.stream is None or self.stream.N != N:
+            self.stream = StreamPart(N)
+        return self.stream
 
     def _settings(self) -> EstimatorConfig:
         return self.config
@@ -202,12 +219,16 @@ class OnlineEstimator:
             groups = ([[a] for a in accepted] if self.config.refit_mode == 'sync'
                       else [accepted] if accepted else [])
             for group in groups:
-                pred = self._estimate(self._learner.snapshot(self._want_stddev),
-                                      np.array([a[3] for a in group]))
+                Q = np.array([a[3] for a in group])
+                pred, part = self._weighed(self._estimate(
+                    self._learner.snapshot(self._want_stddev), Q), Q)
                 keep = []
                 for i, stamp, names, qd, tau, q in group:
                     added, residuals = self._learner.learn(self.clock.time(stamp), qd, tau, q)
                     keep.append((i, stamp, names, qd, tau, added, residuals))
+                if part is not None:
+                    part[0].learn(np.array([a[1] for a in group], float), Q,
+                                  np.array([a[4] for a in group]), part[1], part[2])
                 self._answer(keep, pred, out, t0)
         return out
 
@@ -292,8 +313,11 @@ class OnlineEstimator:
                 return Answers(rows, joints, stamps[:0], e, e, None, e, e, None, np.zeros(0),
                                np.zeros(0), np.zeros(0, dtype=object),
                                time.perf_counter() - t0, [])
-            pred = self._estimate(self._learner.snapshot(self._want_stddev), qd)
+            pred, part = self._weighed(
+                self._estimate(self._learner.snapshot(self._want_stddev), qd), qd)
             self._learner.learn_many(self.clock.times(stamps), qd, tau, q)
+            if part is not None:
+                part[0].learn(np.asarray(stamps, float), qd, tau, part[1], part[2])
             return self._array_answers(joints, rows, stamps, qd, tau, q, pred, t0)
 
     def _array_answers(self, joints, rows, stamps, qd, tau, q, pred, t0) -> Answers:
@@ -318,14 +342,34 @@ class OnlineEstimator:
         return answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
                       self.health, self._learner.note_error, self._plans)
 
+    def _weighed(self, pred: tuple, Q: np.ndarray):
+        """
+        Weigh the model's answers ``pred`` with the stream part's (``stream_part``).
+
+        Returns (pred', part): part is (the StreamPart, the model's forces, the part's forces
+        or None) for its ``learn``, or None where there is no stream part.
+        """
+        stream = self._stream_for(Q.shape[1])
+        if stream is None:
+            return pred, None
+        tau, std, D, source, conf = pred
+        t2, D2, c2, mine = stream.weigh(Q, tau, D, conf)
+        if t2 is not tau:
+            source = source.copy()
+            source[:] = [s if s == 'model' else 'parametric' for s in source]
+        return (t2, std, D2, source, c2), (stream, tau, None if mine is None else mine[0])
+
     def predict(self, Qs) -> np.ndarray:
         """Estimates (k, N) at velocities Qs with the rules of ``process`` (no learning)."""
         Qs = np.atleast_2d(np.asarray(Qs, dtype=float))
         with self._lock:
             snap = self._learner.snapshot(self._want_stddev)
             # the force only: the lean pass (no variance, no damping matrix)
-            return answer(snap, Qs, False, False, self.config.passivity, self.health,
-                          self._learner.note_error, self._plans)[0]
+            pred = answer(snap, Qs, False, False, self.config.passivity, self.health,
+                          self._learner.note_error, self._plans)
+            if self.stream is None:
+                return pred[0]
+            return self.stream.weigh(Qs, pred[0], None)[0]
 
     # ------------------------------------------------------------------ learner control
     def request_refit(self) -> Tuple[bool, str]:

@@ -120,7 +120,7 @@ class Grounds:
         pose = q
         try:
             x = qd[None, :]
-            p = np.asarray(prior.diag(x), float)[0] * qd
+            p = np.asarray(prior.force(x), float)[0]
             u = None if model is None else np.asarray(model.predict(x), float)[0]
             full = cons = None
             corr = getattr(model, 'correction_', None)

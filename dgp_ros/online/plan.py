@@ -127,10 +127,13 @@ class AnswerPlan:
         need_D = self.has_damping and (want_D or pol.needs_damping)
         D = None
         if need_D:
-            dg = self.mean.diag(Q)
             C = G * self.dscale
             D = C if w is None else w[:, None, None] * C
-            D.reshape(len(D), self.N * self.N)[:, ::self.N + 1] += dg     # the diagonal
+            if self.mean.is_diagonal:
+                dg = self.mean.diag(Q)
+                D.reshape(len(D), self.N * self.N)[:, ::self.N + 1] += dg     # the diagonal
+            else:
+                D = D + self.mean.matrix(Q)
         if D is not None and pol.needs_damping:
             tau = np.einsum('kij,kj->ki', D, Q)
         else:

@@ -26,7 +26,8 @@ from typing import List, Optional
 import numpy as np
 
 from dgp_ros.dynamics.conservative import correction_basis
-from dgp_ros.dynamics.history import LongHistory, ParametricFit
+from dgp_ros.dynamics.history import LongHistory
+from dgp_ros.dynamics.parametric import ParametricFit
 from dgp_ros.gp.means import make_mean
 
 __all__ = ['Structure']
@@ -82,7 +83,7 @@ class Structure:
             # random flights and the default flight's beta 4x worse (docs/BENCHMARKS.md)
             arm = self._inverse is not None
             self._history = LongHistory(N, basis, default, offsets=arm,
-                                        elements=self._elements and arm)
+                                        elements=self._elements and arm, couplings=not arm)
             h.correction_basis = '' if basis is None else basis.source
         try:
             return self._history.push(stamp, q, qd, qdd, r)
@@ -130,6 +131,22 @@ class Structure:
     def _inflated(self, t: np.ndarray, rmax: np.ndarray) -> bool:
         """Tell whether any target in t (..., N) exceeds the inflation limit of rmax (N,)."""
         return bool(np.any(np.abs(t) > self.CORRECTION_INFLATION * rmax + 1e-12))
+
+    def refresh(self) -> bool:
+        """
+        Refit the chosen structure on the history as it is now, where it carries couplings.
+
+        Returns whether the prior changed. Each rebase calls it: couplings carry whole forces
+        (an aircraft's lift and drag), and a prior held from one selection to the next (a
+        quarter more history) answered the last seconds of an approach from data 10 s old.
+        """
+        p = self._param
+        if not self.auto or p is None or p.coupling is None or not self.history_grew():
+            return False
+        fit = self._history.refit(p)
+        fit.samples = p.samples
+        self._param = fit
+        return True
 
     def reselect_due(self) -> bool:
         """Tell whether the history grew enough (or a save asks) for a re-selection."""

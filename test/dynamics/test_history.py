@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from dgp_ros.dynamics.conservative import Correction, PotentialBasis
-from dgp_ros.dynamics.history import FAMILIES, LongHistory
+from dgp_ros.dynamics.history import LongHistory
+from dgp_ros.dynamics.parametric import FAMILIES
 from dgp_ros.gp import FullDGP, load_model
 from dgp_ros.gp.joint_element import JointElementMean
 from dgp_ros.gp.means import BasisFrictionMean

@@ -85,7 +85,7 @@ def _train(directory):
 
 def _element_prior(N=7, seed=6):
     """Return a frozen friction prior with elements on joints 0, 2 and 5 (gp.joint_element)."""
-    from dgp_ros.dynamics.history import EPS_S, F, FRICTION_EPS, STRIBECK_VS
+    from dgp_ros.dynamics.parametric import EPS_S, F, FRICTION_EPS, STRIBECK_VS
     from dgp_ros.gp.joint_element import JointElementMean, M_BASIS, VelocityBasis
     from dgp_ros.gp.means import BasisFrictionMean
     rng = np.random.default_rng(seed)

@@ -19,6 +19,18 @@ N = 3
 RNG = np.random.default_rng(36)
 
 
+class _Diag:
+    """A diagonal prior whose m_d at the queries is given (the blend reads ``diag``)."""
+
+    is_diagonal = True
+
+    def __init__(self, m):
+        self.m = m
+
+    def diag(self, Q):
+        return self.m
+
+
 def _random_D(k, psd):
     A = RNG.normal(size=(k, N, N))
     if psd:                                         # PSD symmetric part plus a skew part
@@ -36,7 +48,7 @@ def test_the_per_joint_blend_keeps_a_psd_symmetric_part(scale):
     for _ in range(20):
         w, a = RNG.uniform(size=N), RNG.uniform(size=N)
         m = RNG.uniform(0, 5, size=(k, N))
-        tb, Db = blend(Q, tau, D, m, w, a, per_joint=True)
+        tb, Db = blend(Q, tau, D, _Diag(m), w, a, per_joint=True)
         sym = 0.5 * (Db + np.transpose(Db, (0, 2, 1)))
         assert np.linalg.eigvalsh(sym).min() >= -1e-9 * np.abs(sym).max()
         assert np.all(np.einsum('ki,ki->k', Q, tb) >= -1e-9 * np.abs(tb * Q).sum(axis=1))
@@ -55,11 +67,11 @@ def test_the_scalar_blend_keeps_a_passive_answer_passive(scale):
     for _ in range(20):
         w, a = RNG.uniform(size=N), RNG.uniform(size=N)
         m = RNG.uniform(0, 5, size=(k, N))
-        tb, _ = blend(Q, tau, None, m, w, a, per_joint=False)
+        tb, _ = blend(Q, tau, None, _Diag(m), w, a, per_joint=False)
         assert np.all(np.einsum('ki,ki->k', Q, tb) >= -1e-9 * (np.abs(tb * Q).sum(axis=1) + 1))
         # weight 1: the model's answer; weight 0: the fallback a m q
-        t1, _ = blend(Q, tau, None, m, np.ones(N), a, per_joint=False)
-        t0, _ = blend(Q, tau, None, m, np.zeros(N), a, per_joint=False)
+        t1, _ = blend(Q, tau, None, _Diag(m), np.ones(N), a, per_joint=False)
+        t0, _ = blend(Q, tau, None, _Diag(m), np.zeros(N), a, per_joint=False)
         assert np.allclose(t1, tau) and np.allclose(t0, a * m * Q)
 
 

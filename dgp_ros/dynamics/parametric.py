@@ -1,0 +1,105 @@
+"""
+The parametric part's vocabulary: its friction columns, its families and a fitted structure.
+
+What the long history (:mod:`~dgp_ros.dynamics.history`) fits and the learner serves: per joint
+``j`` friction ``f_j(v) . c_j`` with ``c_j >= 0`` (viscous ``v``, Coulomb ``tanh(v / eps_k)`` at
+:data:`FRICTION_EPS`, Stribeck ``tanh(v / EPS_S) exp(-(v / vs)^2)`` at :data:`STRIBECK_VS`: every
+column odd, its coefficient non-negative, so passive), an offset, a conservative correction of
+the rigid-body model, and on a system that is not an arm the couplings of a persistent column
+(``gp.coupled``); :class:`ParametricFit` holds one fitted structure and turns it into the D-GP's
+prior mean (``friction_mean``) and the correction a saved model carries. No rclpy.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from dgp_ros.gp.joint_element import ElementFit
+
+__all__ = ['ParametricFit', 'friction_columns', 'FRICTION_EPS', 'STRIBECK_VS', 'EPS_S', 'F',
+           'FAMILIES']
+
+#: Coulomb smoothing velocities (velocity units: rad/s on an arm)
+FRICTION_EPS = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2)
+#: Stribeck velocities and the smoothing of their sign
+STRIBECK_VS = (0.05, 0.2)
+EPS_S = 0.01
+F = 1 + len(FRICTION_EPS) + len(STRIBECK_VS)
+#: friction families -> their columns among the F per joint
+FAMILIES = {'none': [], 'viscous': [0], 'friction': list(range(1 + len(FRICTION_EPS))),
+            'friction+stribeck': list(range(F))}
+
+
+def friction_columns(v: np.ndarray) -> np.ndarray:
+    """Friction columns of velocities v (k,) -> (k, F) (module docstring)."""
+    v = np.asarray(v, float)
+    cols = [v] + [np.tanh(v / e) for e in FRICTION_EPS]
+    t = np.tanh(v / EPS_S)
+    cols += [t * np.exp(-(v / vs) ** 2) for vs in STRIBECK_VS]
+    return np.stack(cols, axis=-1)
+
+
+@dataclass
+class ParametricFit:
+    """
+    A fitted structure: ``family``, ``offsets``, ``conservative`` and the coefficients.
+
+    ``offsets``: per joint, whether it has one ((N,) bools; a bool for all joints alike).
+
+    coef : (N, F) friction (>= 0); bias : (N,) offsets; theta : (C,) correction; scores :
+    cross-validation score of every candidate ``(family, offsets, conservative) -> score``
+    (empty before there are blocks to score); basis : the correction's basis or None.
+    """
+
+    family: str
+    offsets: bool
+    conservative: bool
+    coef: np.ndarray
+    bias: np.ndarray
+    theta: np.ndarray
+    basis: object = None
+    scores: dict = field(default_factory=dict)
+    samples: int = 0
+    memory: str = 'all'
+    element: Optional[ElementFit] = None
+    #: the couplings of the persistent columns: (``gp.coupled.CouplingBasis``, W (N, K)) or None
+    coupling: Optional[tuple] = None
+
+    def label(self) -> str:
+        on = np.flatnonzero(np.broadcast_to(np.asarray(self.offsets, bool), self.bias.shape))
+        parts = [self.family, 'no offsets' if not on.size else 'offsets' if
+                 on.size == self.bias.size else 'offsets on ' + ' '.join(str(j) for j in on)]
+        if self.basis is not None:
+            parts.append('correction' if self.conservative else 'no correction')
+        if self.coupling is not None:
+            parts.append('couplings through ' + ' '.join(str(p) for p in self.coupling[0].cols))
+        if self.memory != 'all':
+            parts.append(f'{self.memory} memory')
+        if self.element is not None and self.element.label():
+            parts.append(self.element.label())
+        return ', '.join(parts)
+
+    def friction_mean(self):
+        """Return the friction as a frozen passive prior mean of the D-GP."""
+        from dgp_ros.gp.means import BasisFrictionMean
+        base = BasisFrictionMean(self.coef, FRICTION_EPS, EPS_S, STRIBECK_VS)
+        if self.coupling is not None:
+            from dgp_ros.gp.coupled import CoupledMean
+            return CoupledMean(base, *self.coupling)
+        return base if self.element is None else self.element.mean(base)
+
+    def train_correction(self, Yt: Optional[np.ndarray]) -> np.ndarray:
+        """Return what the non-damping parts explain of samples with columns Yt (k, N, C)."""
+        if Yt is None or not self.conservative or self.theta.size == 0:
+            return np.broadcast_to(self.bias, (1 if Yt is None else Yt.shape[0],
+                                               self.bias.size))
+        return np.einsum('knc,c->kn', Yt, self.theta) + self.bias
+
+    def correction(self):
+        """Return the applied non-damping part as a :class:`~.conservative.Correction`."""
+        from .conservative import Correction
+        use = self.conservative and self.basis is not None
+        return Correction(self.basis if use else None, self.theta if use else np.zeros(0),
+                          self.bias)
