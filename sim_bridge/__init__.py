@@ -35,9 +35,10 @@ the full-flap stall at ~16 deg, load factor in (0, 2) g, the flaps-extended limi
   short of the threshold, 5 m/s is flown.
 - cross-wind 25 m/s is flown (sideslip within +-9 deg), so it keeps the paper's value.
 """
-from .config import JOINT_NAMES, MAX_WIND_MPS, SimConfig
+from .config import FORCE_NAMES, JOINT_NAMES, MAX_WIND_MPS, SimConfig
 from .simulator import (ApproachSimulator, Autopilot, FrozenAero, PeriodicWind, SimState,
                         simulate_approach, TrimError)
 
 __all__ = ['SimConfig', 'ApproachSimulator', 'FrozenAero', 'simulate_approach', 'SimState',
-           'PeriodicWind', 'Autopilot', 'TrimError', 'JOINT_NAMES', 'MAX_WIND_MPS']
+           'PeriodicWind', 'Autopilot', 'TrimError', 'JOINT_NAMES', 'FORCE_NAMES',
+           'MAX_WIND_MPS']

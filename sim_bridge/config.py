@@ -13,6 +13,12 @@ JOINT_NAMES = {
     'angle': ('alpha', 'beta', 'airspeed'),
     'body': ('u', 'v', 'w'),
 }
+#: What each published effort is, per velocity name: the force that pairs with it (its unit).
+#: The effort is the resistive force, so ``qd . tau`` is the dissipated power.
+FORCE_NAMES = {
+    'alpha': 'drag (N)', 'beta': 'side force, -Y (N)', 'airspeed': 'lift (N)',
+    'u': 'force -X body (N)', 'v': 'force -Y body (N)', 'w': 'force -Z body (N)',
+}
 #: The paper's bound on the wind magnitude per axis (m/s).
 MAX_WIND_MPS = 25.0
 

@@ -33,6 +33,7 @@ from dgp_ros.apps.children import Children, isolated_env, listener
 from dgp_ros.gp import KINDS, load_model, PASSIVITY_MODES
 from dgp_ros.gp.passivity import describe_modes
 from dgp_ros.messages import joint_state_sample
+from sim_bridge.config import FORCE_NAMES
 
 OUT_NAMES = ['alpha', 'beta', 'airspeed']
 
@@ -216,6 +217,12 @@ def analyse(rec: _Recorder) -> dict:
     return out
 
 
+def force_label(name: str) -> str:
+    """Name the effort that pairs with velocity ``name``: 'lift (N) at airspeed'."""
+    f = FORCE_NAMES.get(name)
+    return f'{f} at {name}' if f else f'tau[{name}]'
+
+
 def plot(res: dict, out_dir: str) -> List[str]:
     import matplotlib
     matplotlib.use('Agg')
@@ -226,9 +233,9 @@ def plot(res: dict, out_dir: str) -> List[str]:
     for i, ax in enumerate(np.atleast_1d(axes)):
         ax.plot(t, tau[:, i], lw=1.0, label='measured')
         ax.plot(t, tau_hat[:, i], lw=1.0, ls='--', label='D-GP answer (one step ahead)')
-        ax.set_ylabel(f'tau[{names[i]}]')
-        ax.set_title(f'{names[i]}: NMSE one step ahead {res["nmse"][names[i]]:.3g}',
-                     fontsize=9)
+        ax.set_ylabel(FORCE_NAMES.get(names[i], f'tau[{names[i]}]'))
+        ax.set_title(f'{force_label(names[i])}: NMSE one step ahead '
+                     f'{res["nmse"][names[i]]:.3g}', fontsize=9)
         ax.legend(loc='upper right', fontsize=8)
     np.atleast_1d(axes)[-1].set_xlabel('simulation time (s)')
     fig.tight_layout()
@@ -280,10 +287,12 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
           f'{res["matrices"]}')
     if 'nmse' in res:
         ho = res.get('held_out')
-        print(f'{"output":<12}{"NMSE (run)":>14}{"NMSE (2nd half)":>18}' +
+        w = max(len(force_label(n)) for n in res['names']) + 2
+        print(f'{"output":<{w}}{"NMSE (run)":>14}{"NMSE (2nd half)":>18}' +
               (f'{"held out":>12}' if ho else ''))
         for n in res['names']:
-            print(f'{n:<12}{res["nmse"][n]:>14.4g}{res["nmse_second_half"][n]:>18.4g}' +
+            print(f'{force_label(n):<{w}}{res["nmse"][n]:>14.4g}'
+                  f'{res["nmse_second_half"][n]:>18.4g}' +
                   (f'{ho["nmse"][n]:>12.4g}' if ho else ''))
         print('(run, 2nd half: one step ahead, each message answered before the estimator '
               'learned it;' + (f' held out: the model saved after {ho["after_s"]:.0f} s of '
@@ -314,6 +323,12 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
               f'{diag.get("passivity_fallbacks")}')
         print(f'answers under a proven certificate (psd or passive-on-domain): '
               f'{_share_text(diag)}; guarantee now {diag.get("guarantee")}')
+        if diag.get('stream_part') is not None:
+            ratio = diag.get('stream_part_vs_answers')
+            print(f'parametric part learned on the message path: {diag["stream_part"]}, its '
+                  f'share of the answers now {diag.get("stream_part_share")}; the answers of '
+                  'the last seconds against it alone (NMSE ratio): '
+                  f'{"-" if ratio is None else ratio}')
         print(f'status: {["OK", "WARN", "ERROR", "STALE"][min(int(diag["level"]), 3)]}: '
               f'{diag.get("message")}')
     print('=' * 76, flush=True)

@@ -19,15 +19,23 @@ import numpy as np
 
 from dgp_ros.gp.coupled import CouplingBasis
 
-__all__ = ['CouplingTrack', 'PERSIST_LEVEL', 'COUPLING_RIDGE']
+__all__ = ['CouplingTrack', 'PERSIST_LEVEL', 'CONFIRM_S', 'COUPLING_RIDGE']
 
 #: a candidate column's velocity must stay at or above this fraction of its RMS
 PERSIST_LEVEL = 0.5
+#: the long history serves a column's couplings (the D-GP's prior mean) only once its
+#: candidates have been observed this long (s of learning time): every axis of the 20 synthetic
+#: coupled systems of ``bench/dgp_family.py`` (4 seed sets) reversed or neared zero within 1.6 s,
+#: and a prior coupled through one for that second moved their last second (one step ahead) by
+#: up to 100x; the aircraft's first seconds are the stream part's (``online.stream_part``)
+CONFIRM_S = 2.0
 #: the couplings' ridge: this many samples' worth of each feature's mean square (the constant
-#: one has none: the first sample alone answers its own force). A feature may then explain
-#: only what the data show of it: with a ridge of 1e-6 the first samples of an approach (3
-#: samples, 12 features, beta within 1e-3 rad) answered -1.3e8 N of drag for 9e4
-COUPLING_RIDGE = 1.0
+#: one has none: the first sample alone answers its own force). 1e-6 let the first samples of
+#: an approach (3 samples, 12 features, beta within 1e-3 rad) answer -1.3e8 N of drag for 9e4;
+#: 1.0 biased a noise-free polynomial of 30 s to 3e-3 of the lift's variance held out (0.01:
+#: 4e-7; seeds 20241 and 777, flights 4, 13, 4, 11: worst 1 s windows 0.008-0.023 against
+#: 0.013-0.036 at 1.0)
+COUPLING_RIDGE = 0.01
 
 
 class CouplingTrack:
@@ -48,19 +56,26 @@ class CouplingTrack:
         self.ss = np.zeros(self.N)                 # sum of v^2
         self.sv = np.zeros(self.N)                 # sum of v
         self.n = 0
+        self.t0: Optional[float] = None            # the first and last stamps observed
+        self.t: Optional[float] = None
         self.cols: List[int] = list(range(self.N))
         self.vref = np.ones(self.N)
         self.basis: Optional[CouplingBasis] = None
         self.K = len(self.cols) * CouplingBasis.features_per_column(self.N)
 
-    def observe(self, V: np.ndarray) -> List[int]:
+    def observe(self, V: np.ndarray, stamp: Optional[float] = None) -> List[int]:
         """
         Take velocities V (k, N) about to be learned; return the candidates they drop.
+
+        stamp : the learning time of the newest of them (s), for ``serving(confirm_s)``.
 
         Call before :meth:`columns` with the same rows, and drop the returned columns' features
         from the statistics first (``drop_slices``, with the basis as it was).
         """
         V = np.atleast_2d(np.asarray(V, float))
+        if stamp is not None:
+            self.t0 = stamp if self.t0 is None else self.t0
+            self.t = stamp
         if self.sign is None:
             first = V[0]
             self.sign = np.sign(first)
@@ -77,15 +92,18 @@ class CouplingTrack:
                                              self.vmin[p] >= PERSIST_LEVEL * rms[p])]
         return dead
 
-    def serving(self) -> Optional[int]:
+    def serving(self, confirm_s: float = 0.0) -> Optional[int]:
         """
         Return the index (among ``cols``) of the column whose couplings serve (None: none).
 
         The most persistent candidate: the least spread about its mean (``std / |mean|``; an
         approach's airspeed 3 %, an angle of attack that stayed positive for a while 10 % and
         more). One column: two persistent ones' features explain the same forces.
+        ``confirm_s``: only once the candidates have been observed that long (s of stamps).
         """
         if not self.cols or not self.n:
+            return None
+        if confirm_s > 0.0 and (self.t is None or self.t - self.t0 < confirm_s):
             return None
         ms = self.ss[self.cols] / self.n
         mean = self.sv[self.cols] / self.n
@@ -109,9 +127,16 @@ class CouplingTrack:
             self.basis = CouplingBasis(self.N, self.cols, self.vref[self.cols])
         return self.basis
 
-    def fitted_basis(self) -> CouplingBasis:
-        """Return the basis a fit serves with: these columns, clipped to what was seen."""
-        return self.basis_now().boxed(self.lo, self.hi)
+    def fitted_basis(self, c: Optional[int] = None) -> CouplingBasis:
+        """
+        Return the basis a fit serves with, clipped to the velocities seen.
+
+        c : the serving column's index among ``cols`` (its features alone), None: all of them.
+        """
+        if c is None:
+            return self.basis_now().boxed(self.lo, self.hi)
+        p = self.cols[c]
+        return CouplingBasis(self.N, [p], [self.vref[p]]).boxed(self.lo, self.hi)
 
     def columns(self, V: np.ndarray) -> np.ndarray:
         """Return the coupling columns of velocities V (k, N), shared by the outputs: (k, K)."""

@@ -44,7 +44,7 @@ from scipy.linalg import cho_factor, cho_solve
 
 from dgp_ros.gp.joint_element import ElementFit, M_BASIS
 
-from .coupling_track import COUPLING_RIDGE, CouplingTrack
+from .coupling_track import CONFIRM_S, COUPLING_RIDGE, CouplingTrack
 from .element_track import ElementTrack
 from .parametric import F, FAMILIES, friction_columns, ParametricFit
 from .statistics import nonnegative_part, Stats
@@ -168,7 +168,7 @@ class LongHistory:
         V = np.array([v for *_, v in rows])
         E = self.element.columns(V, self._last_t)                                 # (k, N, M)
         if self.coupling is not None:
-            dead = self.coupling.observe(V)
+            dead = self.coupling.observe(V, self._last_t)
             if dead:
                 self._drop_columns(self.coupling.drop_slices(dead))
             Cc = self.coupling.columns(V)                                         # (k, K)
@@ -247,7 +247,7 @@ class LongHistory:
             m[self.N * F + j] = offs[j]
         if conservative and self.C:
             m[self.N * F + self.N:self.N * F + self.N + self.C] = True
-        c = None if self.coupling is None else self.coupling.serving()
+        c = None if self.coupling is None else self.coupling.serving(CONFIRM_S)
         if c is not None:               # the most persistent column's couplings: always
             size = self.K // len(self.coupling.cols)
             k0 = self.N * F + self.N + self.C
@@ -343,7 +343,8 @@ class LongHistory:
                 return self._fit(self._total(self._blocks, True, k), best, scores, total.n, k)
         else:
             # the couplings alone where a column persists (an aircraft's: they carry its forces)
-            family = 'none' if self.K or not total.n else self.default_family
+            serving = self.coupling is not None and self.coupling.serving(CONFIRM_S) is not None
+            family = 'none' if serving or not total.n else self.default_family
             best = (family, False, bool(self.C))
         return self._fit(total, best, scores)
 
@@ -373,7 +374,9 @@ class LongHistory:
 
         recent = [score(k) for k in range(len(HALF_LIVES_S))]
         k = int(np.argmin(recent))
-        margin = 0.0 if self.K else RECENT_MARGIN
+        # the couplings of a persistent column follow the air's density (+3 % over an approach)
+        coupled = self.coupling is not None and self.coupling.serving(CONFIRM_S) is not None
+        margin = 0.0 if coupled else RECENT_MARGIN
         return k if recent[k] < (1.0 - margin) * score(-1) else -1
 
     def _choose(self, scores: dict) -> tuple:
@@ -437,8 +440,11 @@ class LongHistory:
             (theta[N * F:N * F + N] != 0.0)
         k0 = N * F + N + self.C
         coupling = None
-        if self.K and np.any(theta[k0:]):
-            coupling = (self.coupling.fitted_basis(), theta[k0:].reshape(N, self.K).copy())
+        c = None if self.coupling is None else self.coupling.serving(CONFIRM_S)
+        if c is not None and np.any(theta[k0:]):
+            size = self.K // len(self.coupling.cols)          # the serving column's features
+            W = theta[k0:].reshape(N, self.K)[:, c * size:(c + 1) * size].copy()
+            coupling = (self.coupling.fitted_basis(c), W)
         return ParametricFit(cand[0], offs, bool(cand[2]),
                              np.maximum(theta[:N * F].reshape(N, F), 0.0),
                              theta[N * F:N * F + N].copy(), theta[N * F + N:k0].copy(),

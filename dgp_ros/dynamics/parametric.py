@@ -67,14 +67,18 @@ class ParametricFit:
     #: the couplings of the persistent columns: (``gp.coupled.CouplingBasis``, W (N, K)) or None
     coupling: Optional[tuple] = None
 
-    def label(self) -> str:
+    def label(self, names=None) -> str:
+        """Name the structure (/diagnostics ``structure``); ``names``: the velocities'."""
         on = np.flatnonzero(np.broadcast_to(np.asarray(self.offsets, bool), self.bias.shape))
         parts = [self.family, 'no offsets' if not on.size else 'offsets' if
                  on.size == self.bias.size else 'offsets on ' + ' '.join(str(j) for j in on)]
         if self.basis is not None:
             parts.append('correction' if self.conservative else 'no correction')
         if self.coupling is not None:
-            parts.append('couplings through ' + ' '.join(str(p) for p in self.coupling[0].cols))
+            cols = self.coupling[0].cols
+            parts.append('couplings through ' + ' '.join(
+                str(names[p]) if names is not None and p < len(names) else str(p)
+                for p in cols))
         if self.memory != 'all':
             parts.append(f'{self.memory} memory')
         if self.element is not None and self.element.label():

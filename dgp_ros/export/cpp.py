@@ -11,53 +11,19 @@ was made at export.
 """
 from __future__ import annotations
 
-import math
-from typing import Iterable
-
 import numpy as np
 
-from .cpp_runtime import (CHAIN, EXP, GATE, KERNEL, KERNEL_NONE, KERNEL_SCALAR, PROJECT,
-                          PSD_FLOOR, TANH_OVER)
+from .coupled_cpp import coupled_answer, coupled_blend_code, coupled_code, GATE_COUPLED
+from .cpp_runtime import (CHAIN, EXP, GATE, GATE_DIAGONAL, KERNEL, KERNEL_NONE, KERNEL_SCALAR,
+                          PROJECT, PSD_FLOOR, TANH_OVER)
 from .errors import ExportError
+from .literals import const as _const, lit as _lit
 from .spec import Spec
 
 __all__ = ['render', 'PAD']
 
 #: elements are padded to a multiple of this (zero weights) so the element loops vectorize
 PAD = 8
-
-
-def _lit(x) -> str:
-    """Return a C++ literal that reads back as exactly ``x`` (the shortest round trip)."""
-    x = float(x)
-    if not math.isfinite(x):
-        raise ExportError(f'a model constant is not finite ({x!r}): the file is damaged')
-    r = repr(x)
-    return r if ('.' in r or 'e' in r) else r + '.0'
-
-
-def _arr(a, per_line: int = 4) -> str:
-    """Brace-initializer of a float array of any rank (rows on lines of ``per_line`` numbers)."""
-    a = np.asarray(a, float)
-    if a.ndim == 1:
-        items = [_lit(v) for v in a]
-        lines = [', '.join(items[i:i + per_line]) for i in range(0, len(items), per_line)]
-        return '{' + ',\n    '.join(lines) + '}'
-    return '{' + ',\n  '.join(_arr(row, per_line) for row in a) + '}'
-
-
-def _ints(a: Iterable[int]) -> str:
-    return '{' + ', '.join(str(int(v)) for v in a) + '}'
-
-
-def _dims(a) -> str:
-    return ''.join(f'[{d}]' for d in np.shape(a))
-
-
-def _const(name: str, a, kind: str = 'double') -> str:
-    if kind == 'double':
-        return f'inline constexpr double {name}{_dims(a)} = {_arr(a)};\n'
-    return f'inline constexpr {kind} {name}[{len(a)}] = {_ints(a)};\n'
 
 
 def _prior_code(spec: Spec) -> str:
@@ -150,6 +116,8 @@ def _blend_code(spec: Spec) -> str:
     """Return ``blend``: the earned gains' blend (gp/blend.py), on (tau, D) in place."""
     if spec.grounds is None:
         return ''
+    if 'coupled' in spec.prior:
+        return coupled_blend_code(spec)
     w, a = spec.grounds
     if spec.per_joint:
         s = np.sqrt(w)
@@ -175,21 +143,30 @@ def _blend_code(spec: Spec) -> str:
 
 
 def _answer_code(spec: Spec) -> str:
-    """``model_answer``: the model's predict and damping matrix (gp/models.py ``_answers``)."""
+    """
+    ``model_answer``: the model's predict and damping matrix (gp/models.py ``_answers``).
+
+    D starts from the prior's matrix and tau from the prior's force (``gp.posterior``): a
+    diagonal prior's ``diag(m_d)`` and ``m_d qd``, a coupled one's (``coupled_cpp``).
+    """
+    part = coupled_answer(spec) if 'coupled' in spec.prior else {
+        'decl': '  double x[N], md[N], acc[NE], corr[N];',
+        'prior': ['  prior_diag(qd, md);',
+                  '  for (std::size_t i = 0; i < N * N; ++i) D[i] = 0.0;',
+                  '  for (std::size_t i = 0; i < N; ++i) { D[i * N + i] = md[i]; '
+                  'corr[i] = 0.0; }'],
+        'force': 'md[i] * qd[i]', 'blend': '  blend(qd, md, tau, D);'}
     lines = ['inline void model_answer(const double* qd, double* tau, double* D) noexcept {',
-             '  double x[N], md[N], acc[NE], corr[N];',
+             part['decl'],
              '  for (std::size_t i = 0; i < N; ++i) x[i] = qd[i] / SX[i];',
              '  element_sums(x, acc);',
-             '  const double w = weight(qd);',
-             '  prior_diag(qd, md);',
-             '  for (std::size_t i = 0; i < N * N; ++i) D[i] = 0.0;',
-             '  for (std::size_t i = 0; i < N; ++i) { D[i * N + i] = md[i]; corr[i] = 0.0; }',
+             '  const double w = weight(qd);'] + part['prior'] + [
              '  for (std::size_t e = 0; e < E; ++e) {',
              '    corr[EM[e]] += acc[e] * x[EN[e]];',
              '    D[EM[e] * N + EN[e]] += w * (acc[e] * SYSX[e]);',
              '  }',
              '  for (std::size_t i = 0; i < N; ++i)',
-             '    tau[i] = md[i] * qd[i] + (corr[i] * w) * SY[i];']
+             f'    tau[i] = {part["force"]} + (corr[i] * w) * SY[i];']
     if spec.clip_delta is not None:
         lines += ['  psd_floor(D);',
                   '  for (std::size_t i = 0; i < N; ++i) {',
@@ -205,7 +182,7 @@ def _answer_code(spec: Spec) -> str:
                   '    dq[i] = t;', '  }',
                   '  project(qd, tau, D, dq);']
     if spec.grounds is not None:
-        lines.append('  blend(qd, md, tau, D);')
+        lines.append(part['blend'])
     return '\n'.join(lines) + '\n}\n'
 
 
@@ -278,7 +255,11 @@ def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
     if spec.clip_delta is not None:
         d.append(PSD_FLOOR.substitute())
     d.append(PROJECT.substitute())
-    d += [_blend_code(spec), _answer_code(spec), GATE.substitute(), _correction_code(spec)]
+    coupled = 'coupled' in spec.prior
+    if coupled:
+        d.append(coupled_code(spec))
+    d += [_blend_code(spec), _answer_code(spec),
+          GATE.substitute(GATE_COUPLED if coupled else GATE_DIAGONAL), _correction_code(spec)]
     detail = ''.join(d)
     return _HEADER.format(
         banner=banner, guard=guard, ns=namespace, N=N, n=spec.n, E=E,

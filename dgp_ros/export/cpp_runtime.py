@@ -10,7 +10,7 @@ where a kernel exponent does not need the fast one.
 from string import Template
 
 __all__ = ['EXP', 'KERNEL', 'KERNEL_SCALAR', 'KERNEL_NONE', 'PSD_FLOOR', 'PROJECT', 'GATE',
-           'CHAIN', 'TANH_OVER']
+           'GATE_DIAGONAL', 'CHAIN', 'TANH_OVER']
 
 #: exp(x) in plain arithmetic, on one number or a vector of them (GCC/clang vector extensions,
 #: so the element loop runs as SIMD where the target has it: SSE2, AVX, AVX-512, NEON):
@@ -302,8 +302,12 @@ inline void project(const double* q, double* tau, double* D, const double* dq) n
 """)
 
 #: the frozen node's output gate (online/answer.py ``_gate``, ``_prior``, ``_bound``):
-#: non-finite or non-passive answers replaced by the fallback a m_d(qd) qd, answers beyond
-#: the learned force (or the prior's own force inside the learned box) scaled down
+#: non-finite or non-passive answers replaced by the fallback (``gp.blend.prior_answer``: the
+#: prior times its gains), answers beyond the learned force (or the prior's own force inside
+#: the learned box) scaled down. ``$fallback`` sets (tau, D) to the fallback at q (zero where
+#: it is not finite); ``$boxed_decl``, ``$boxed_prior``, ``$boxed_force``: the prior's force at
+#: the query clipped into the box ``qb`` (its declaration, evaluation, and entry ``i``);
+#: :data:`GATE_DIAGONAL` fills them for a diagonal prior, ``coupled_cpp`` for a coupled one
 GATE = Template(r"""
 inline void gate(const double* q, double* tau, double* D, bool check_d) noexcept {
   bool bad = false;
@@ -312,19 +316,7 @@ inline void gate(const double* q, double* tau, double* D, bool check_d) noexcept
     for (std::size_t i = 0; i < N * N; ++i) bad = bad || !std::isfinite(D[i]);
   if (!bad && GATE_PASSIVE && power(q, tau) < -tolerance(q, tau)) bad = true;
   if (bad) {
-    double md[N], fb[N];
-    prior_diag(q, md);
-    bool finite = true;
-    for (std::size_t i = 0; i < N; ++i) {
-      md[i] = md[i] * GAIN[i];
-      fb[i] = md[i] * q[i];
-      finite = finite && std::isfinite(fb[i]);
-    }
-    for (std::size_t i = 0; i < N; ++i) {
-      tau[i] = finite ? fb[i] : 0.0;
-      for (std::size_t j = 0; j < N; ++j) D[i * N + j] = (i == j && finite) ? md[i] : 0.0;
-    }
-  }
+$fallback  }
   double limit[N], worst = 0.0;
   for (std::size_t i = 0; i < N; ++i) {
     limit[i] = LIMIT[i];
@@ -332,13 +324,13 @@ inline void gate(const double* q, double* tau, double* D, bool check_d) noexcept
     worst = r > worst ? r : worst;
   }
   if (!(worst > 1.0)) return;
-  double qb[N], md[N];
+  double qb[N], $boxed_decl;
   for (std::size_t i = 0; i < N; ++i)
     qb[i] = q[i] < BOX_LO[i] ? BOX_LO[i] : (q[i] > BOX_HI[i] ? BOX_HI[i] : q[i]);
-  prior_diag(qb, md);
+  $boxed_prior
   worst = 0.0;
   for (std::size_t i = 0; i < N; ++i) {
-    double pr = std::fabs(md[i] * qb[i]);
+    double pr = std::fabs($boxed_force);
     pr = std::isfinite(pr) ? pr : 0.0;
     limit[i] = limit[i] > pr ? limit[i] : pr;
     const double r = std::fabs(tau[i]) / limit[i];
@@ -363,6 +355,23 @@ inline void gate(const double* q, double* tau, double* D, bool check_d) noexcept
   }
 }
 """)
+
+#: the gate's prior of a diagonal prior: ``diag(a m_d(q)) q`` and ``diag(a m_d(q))``
+GATE_DIAGONAL = {
+    'fallback': r"""    double md[N], fb[N];
+    prior_diag(q, md);
+    bool finite = true;
+    for (std::size_t i = 0; i < N; ++i) {
+      md[i] = md[i] * GAIN[i];
+      fb[i] = md[i] * q[i];
+      finite = finite && std::isfinite(fb[i]);
+    }
+    for (std::size_t i = 0; i < N; ++i) {
+      tau[i] = finite ? fb[i] : 0.0;
+      for (std::size_t j = 0; j < N; ++j) D[i * N + j] = (i == j && finite) ? md[i] : 0.0;
+    }
+""",
+    'boxed_decl': 'md[N]', 'boxed_prior': 'prior_diag(qb, md);', 'boxed_force': 'md[i] * qb[i]'}
 
 #: the gravity torque of a kinematic tree of revolute joints (export/kinematics.py)
 CHAIN = Template(r"""

@@ -23,6 +23,7 @@ import numpy as np
 
 from dgp_ros.gp.blend import Grounds
 from dgp_ros.gp.certified import CertifiedPolicy
+from dgp_ros.gp.coupled import CoupledMean, MAX_PAIRED
 from dgp_ros.gp.joint_element import JointElementMean
 from dgp_ros.gp.means import BasisFrictionMean, FrictionMean, ViscousMean
 from dgp_ros.gp.passivity import NonePolicy, PaperPolicy, policy_class, ProjectedPolicy
@@ -30,7 +31,8 @@ from dgp_ros.gp.persistence import rebuild_correction, SavedCorrection
 
 from .errors import ExportError
 
-__all__ = ['ExportError', 'Spec', 'Element', 'model_spec', 'prove_as_node', 'BOUND_FACTOR']
+__all__ = ['ExportError', 'Spec', 'Element', 'model_spec', 'prove_as_node', 'BOUND_FACTOR',
+           'psi_terms', 'psi_values']
 
 #: the output gate's factor on the largest learned force (``online.answer.BOUND_FACTOR``; the
 #: export does not import the online layer: test/export checks that the two agree)
@@ -59,8 +61,9 @@ class Spec:
     The numbers of one frozen model (module docstring); every array in model units.
 
     prior : dict with ``coef`` (N, 1 + K + S), ``eps`` (N, K + 1) and ``vs`` (N, S): the
-    damping prior ``m_d(|qd|)`` (``gp.means``; viscous: K = S = 0), and ``element`` where joints
-    carry a per-joint element (``gp.joint_element``; ``_prior``).
+    damping prior ``m_d(|qd|)`` (``gp.means``; viscous: K = S = 0), ``element`` where joints
+    carry a per-joint element (``gp.joint_element``) and ``coupled`` where the prior carries the
+    couplings of persistent columns (``gp.coupled``; its base's ``m_d`` then; ``_prior``).
     weight : ('one',) | ('scale', s) | ('domain', s, olo, ilo - olo, ohi, ohi - ihi): the policy's
     correction weight. clip_delta : the eigenvalue floor's width, or None. project : the policy
     projects every answer onto ``qd . tau >= 0`` (``w_inv``: the projection's weights).
@@ -119,7 +122,9 @@ def _prior(mean, N: int) -> dict:
 
     A prior with per-joint elements (``gp.joint_element.JointElementMean``) is its base's, with
     ``element``: the joints that carry one, their weights (n, M), velocity scales and sign
-    smoothings (n,), added and floored at 0 as the mean does.
+    smoothings (n,), added and floored at 0 as the mean does. A prior with the couplings of
+    persistent columns (``gp.coupled.CoupledMean``) is its base's too, with ``coupled``
+    (:func:`_coupled`).
     """
     if isinstance(mean, JointElementMean):
         out = _prior(mean.base, N)
@@ -127,6 +132,10 @@ def _prior(mean, N: int) -> dict:
         b = mean.basis
         out['element'] = {'joints': j, 'W': np.asarray(mean.W, float)[j],
                           'vc': np.asarray(b.vc, float)[j], 'eps': np.asarray(b.eps, float)[j]}
+        return out
+    if isinstance(mean, CoupledMean):
+        out = _prior(mean.base, N)
+        out['coupled'] = _coupled(mean)
         return out
     if isinstance(mean, ViscousMean):
         return {'coef': np.asarray(mean.m_d, float).reshape(N, 1), 'eps': np.zeros((N, 1)),
@@ -141,8 +150,64 @@ def _prior(mean, N: int) -> dict:
         K, S = mean.eps.size, mean.vs.size
         return {'coef': np.asarray(mean.coef, float), 'eps': np.tile(eps, (N, 1)),
                 'vs': np.tile(np.asarray(mean.vs, float), (N, 1)), 'K': K, 'S': S}
-    raise ExportError(f'the prior {type(mean).__name__} has no C++ form (viscous, friction '
-                      f'and frozen friction priors do): refit with one of these priors')
+    raise ExportError(f'the prior {type(mean).__name__} has no C++ form (viscous, friction, '
+                      f'frozen friction and coupled priors do): refit with one of these priors')
+
+
+def psi_terms(n: int, paired: bool) -> List[tuple]:
+    """
+    Return the features of one persistent column, in ``CouplingBasis.psi``'s order.
+
+    n : how many other velocities; paired : with the pair features. Each term is ('one',),
+    ('x', k), ('a', k), ('x2', k), ('x3', k) (``x_k``, ``|x_k|``, ``x_k^2``, ``x_k^3``) or
+    ('xx', k, m), ('xa', k, m), ('ax', k, m) (``x_k x_m``, ``x_k |x_m|``, ``|x_k| x_m``).
+    """
+    out = [('one',)] + [(f, k) for f in ('x', 'a', 'x2', 'x3') for k in range(n)]
+    if paired:
+        for k in range(n):
+            for m in range(k + 1, n):
+                out += [('xx', k, m), ('xa', k, m), ('ax', k, m)]
+    return out
+
+
+def psi_values(terms: List[tuple], X: np.ndarray) -> np.ndarray:
+    """Evaluate ``terms`` (:func:`psi_terms`) at clipped other velocities X (k, n): (k, T)."""
+    A = np.abs(X)
+    val = {'x': lambda k: X[:, k], 'a': lambda k: A[:, k], 'x2': lambda k: X[:, k] * X[:, k],
+           'x3': lambda k: X[:, k] * X[:, k] * X[:, k],
+           'xx': lambda k, m: X[:, k] * X[:, m], 'xa': lambda k, m: X[:, k] * A[:, m],
+           'ax': lambda k, m: A[:, k] * X[:, m]}
+    return np.stack([np.ones(X.shape[0]) if t[0] == 'one' else val[t[0]](*t[1:])
+                     for t in terms], axis=1)
+
+
+def _coupled(mean) -> dict:
+    """
+    Return the couplings of a coupled prior (``gp.coupled.CoupledMean``) as plain numbers.
+
+    ``box``: (lo, hi) (N,) each, the other velocities' clipping, or None; ``columns``: per
+    persistent column ``p``, its reference speed ``vref``, its ``others`` (the velocities its
+    features are taken of, in order), ``terms`` (:func:`psi_terms`) and weights ``W`` (N, T).
+    The terms are checked against ``CouplingBasis.psi`` at random velocities (equal bit for
+    bit): a basis whose features changed is refused rather than exported wrong.
+    """
+    b = mean.basis
+    W = np.asarray(mean.W, float)
+    box = None if b.box is None else (np.asarray(b.box[0], float), np.asarray(b.box[1], float))
+    rng = np.random.default_rng(0)
+    Q = rng.normal(0.0, 1.0, (64, b.N)) * rng.choice([1e-3, 1.0, 1e3], (64, 1))
+    cols = []
+    for c, (p, sl) in enumerate(zip(b.cols, b.slices())):
+        o = list(b.others[c])
+        terms = psi_terms(len(o), len(o) <= MAX_PAIRED)
+        X = Q[:, o] if box is None else np.clip(Q[:, o], box[0][o], box[1][o])
+        if len(terms) != b.sizes[c] or not np.array_equal(psi_values(terms, X), b.psi(Q, c)):
+            raise ExportError("the coupled prior's features are not the ones the export "
+                              'knows (gp.coupled.CouplingBasis.psi changed): update '
+                              'dgp_ros.export.spec.psi_terms')
+        cols.append({'p': int(p), 'vref': float(b.vref[c]), 'others': o, 'terms': terms,
+                     'W': W[:, sl].copy()})
+    return {'box': box, 'columns': cols}
 
 
 def _weight(pol) -> tuple:

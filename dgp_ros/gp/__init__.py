@@ -9,9 +9,10 @@ means), ``posterior`` (exact inference), ``hyper`` (hyper-parameter learning), `
 registry of passivity modes and their policies; ``certified`` and ``verify`` for the structural
 proof), ``persistence`` (model files), ``models`` (the estimators; ``fitted``: their fitted
 attributes), ``joint_element`` (the per-joint element of D learned from every sample: a
-reduced-rank GP on each joint's velocity).
+reduced-rank GP on each joint's velocity), ``coupled`` (the couplings of a velocity that never
+nears zero, an aircraft's airspeed, in the prior mean).
 """
-from . import joint_element  # noqa: F401 - registers its prior mean for model files
+from . import coupled, joint_element  # noqa: F401 - register their prior means for model files
 from .kernels import KINDS, se_ard, se_bound
 from .means import prior_mean_diag, PRIORS
 from .models import ArdGP, DiagDGP, FullDGP, load_model, make_model, model_class

@@ -44,13 +44,13 @@ def prior_answer(mean, Q: np.ndarray, a: Optional[np.ndarray] = None, want_D: bo
             D = np.zeros(d.shape + (d.shape[-1],))
             D[:, np.arange(d.shape[-1]), np.arange(d.shape[-1])] = d
         return d * Q, D
-    from .policy import projection_lambda
+    from .policy import project_passive, projection_lambda
     tau = np.asarray(mean.force(Q), float)
     D = np.asarray(mean.matrix(Q), float) if want_D else None
     if a is not None:
         tau = tau * a
         lam = projection_lambda(Q, tau)
-        tau = tau + lam[:, None] * Q
+        tau = project_passive(Q, tau)
         if D is not None:
             D = D * a[:, None]
             D[:, np.arange(Q.shape[1]), np.arange(Q.shape[1])] += lam[:, None]
@@ -72,15 +72,15 @@ def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], mean,
         # joint by joint, then projected: a coupled prior carries whole forces (an aircraft's
         # lift), and one scalar min(w) let a side force's weight of 0.1 pull the lift's answer
         # toward its fallback
-        from .policy import projection_lambda
+        from .policy import project_passive, projection_lambda
         tp, Dp = prior_answer(mean, Q, a, D is not None)
         tb = w * tau + (1.0 - w) * tp
-        lam = projection_lambda(Q, tb)
         Db = None
         if D is not None:
+            lam = projection_lambda(Q, tb)
             Db = w[:, None] * D + (1.0 - w)[:, None] * Dp
             Db[:, np.arange(Q.shape[1]), np.arange(Q.shape[1])] += lam[:, None]
-        return tb + lam[:, None] * Q, Db
+        return project_passive(Q, tb), Db
     prior_diag = np.asarray(mean.diag(Q), float)
     if per_joint and D is not None:
         s = np.sqrt(w)

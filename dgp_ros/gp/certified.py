@@ -167,6 +167,8 @@ class CertifiedPolicy(PassivityPolicy):
 
     def _global(self, post, rkhs: bool) -> bool:
         """Certificate (1); True when it holds (then nothing is blended or clipped)."""
+        if not post.mean.is_diagonal:
+            return False            # the lemma needs a diagonal prior (``gp.coupled``: none)
         m = norm_margin(post.mean.diag_inf(), self.scale * post.l1_bound(rkhs=rkhs))
         if m < 0:
             return False

@@ -32,6 +32,7 @@ from typing import List, Sequence
 import numpy as np
 
 from .means import mean_from_dict, PriorMean, register_mean
+from .policy import project_passive, projection_lambda
 
 __all__ = ['CouplingBasis', 'CoupledMean', 'MAX_PAIRED', 'BOX_MARGIN']
 
@@ -200,21 +201,9 @@ class CoupledMean(PriorMean):
         Qd = np.atleast_2d(np.asarray(Qd, float))
         return self.base.force(Qd) + self.basis.columns(Qd) @ self.W.T
 
-    @staticmethod
-    def _lam(Qd: np.ndarray, raw: np.ndarray) -> np.ndarray:
-        """``max(0, -qd^T raw) / |qd|^2`` per row (0 at rest), (k,)."""
-        p = np.einsum('kn,kn->k', Qd, raw)
-        qq = np.einsum('kn,kn->k', Qd, Qd)
-        lam = np.zeros(Qd.shape[0])
-        neg = (p < 0.0) & (qq > 0.0)
-        lam[neg] = -p[neg] / qq[neg]
-        return lam
-
     def force(self, Qd) -> np.ndarray:
         Qd = np.atleast_2d(np.asarray(Qd, float))
-        raw = self.raw_force(Qd)
-        lam = self._lam(Qd, raw)
-        return raw + lam[:, None] * Qd if np.any(lam) else raw
+        return project_passive(Qd, self.raw_force(Qd))
 
     def raw_matrix(self, Qd) -> np.ndarray:
         """``M_raw(qd)`` (k, N, N): the base's diagonal and the persistent columns."""
@@ -230,7 +219,7 @@ class CoupledMean(PriorMean):
     def matrix(self, Qd) -> np.ndarray:
         Qd = np.atleast_2d(np.asarray(Qd, float))
         M = self.raw_matrix(Qd)
-        lam = self._lam(Qd, np.einsum('kij,kj->ki', M, Qd))
+        lam = projection_lambda(Qd, np.einsum('kij,kj->ki', M, Qd))
         if np.any(lam):
             M[:, np.arange(Qd.shape[1]), np.arange(Qd.shape[1])] += lam[:, None]
         return M
@@ -279,7 +268,19 @@ class CoupledMean(PriorMean):
         return np.asarray(self.base.diag_inf(), float)
 
     def diag_ref(self):
-        return self.base.diag_ref()
+        """
+        Return a typical ``|M_ii|`` per output (N,): the proofs' scale of the power.
+
+        The base's, or where larger the raw matrix's diagonal at the persistent columns'
+        reference speeds (the other velocities at the middle of the box): an aircraft's lift
+        over its airspeed, where a prior without friction has none of its own.
+        """
+        q = np.zeros((1, self.basis.N))
+        if self.basis.box is not None:
+            q[0] = 0.5 * (self.basis.box[0] + self.basis.box[1])
+        q[0, list(self.basis.cols)] = self.basis.vref
+        d = np.abs(self.raw_matrix(q)[0][np.arange(self.basis.N), np.arange(self.basis.N)])
+        return np.maximum(np.asarray(self.base.diag_ref(), float), d)
 
     # ------------------------------------------------------------------ persistence
     def _params(self):

@@ -199,6 +199,7 @@ class _DGP(Fitted):
             if optimize:
                 H = self._hyper_rows(structure, hp, Qd, Tau, hyper_rows)
                 hp, info = self._learn(structure, hp, H[0], H[1] - mean(H[0]), H[1],
+                                       not mean.is_diagonal,
                                        start is not None)
         else:
             hp, mean = start
@@ -230,8 +231,12 @@ class _DGP(Fitted):
             return Qd, Tau
         return Qh, Th
 
-    def _learn(self, structure, hp, Qd, resid, Tau, started: bool):
-        """Learn the hyper-parameters (and with ``elements='auto'`` the elements): (hp, info)."""
+    def _learn(self, structure, hp, Qd, resid, Tau, coupled: bool, started: bool):
+        """
+        Learn the hyper-parameters (and with ``elements='auto'`` the elements): (hp, info).
+
+        ``coupled``: the prior carries the couplings of a persistent column (``gp.coupled``).
+        """
         kw = {'fix_noise': self.noise is not None, 'n_restarts': int(self.n_restarts),
               'max_samples': int(self.max_opt_samples), 'random_state': int(self.random_state),
               'noise_floor': float(self.noise_floor or MIN_NOISE_VAR)}
@@ -239,7 +244,8 @@ class _DGP(Fitted):
         if self.elements == 'auto':
             fresh = initial_hyper(structure, Qd, resid, Tau, self.noise)
             picked = select_elements(structure, hp, Qd, resid, fresh, warm,
-                                     reversing=self.couplings == 'evidence', **kw)
+                                     reversing=self.couplings == 'evidence', keep_all=coupled,
+                                     **kw)
             if picked is not None:
                 return picked
         return learn_hyper(structure, hp, Qd, resid, warm=warm, **kw)

@@ -50,6 +50,10 @@ class NonePolicy(PassivityPolicy):
             self.cert = Certificate(False, -np.inf, 'none', None, 1.0,
                                     {'note': 'ARD-GP has no damping structure'})
             return post
+        if not post.mean.is_diagonal:
+            self.cert = Certificate(False, -np.inf, 'none', None, 1.0,
+                                    {'note': 'the prior carries couplings: no global bound'})
+            return post
         m = norm_margin(post.mean.diag_inf(), post.l1_bound(rkhs=rkhs))
         self.cert = Certificate(bool(m >= 0), float(m), 'a-posteriori-bound (not enforced)',
                                 guarantee='psd' if m >= 0 else 'none')
@@ -93,6 +97,10 @@ class PaperPolicy(PassivityPolicy):
         self.hyper_scale = 1.0
 
     def enforce(self, post):
+        if not post.mean.is_diagonal:
+            raise ValueError("passivity 'paper' needs a diagonal prior mean (Theorem 1); a "
+                             "prior with couplings (gp.coupled) is for 'certified' and "
+                             "'projected'")
         t0 = time.perf_counter()
         m_inf = post.mean.diag_inf()
         hp = post.hyper.copy()

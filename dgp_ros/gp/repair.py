@@ -42,7 +42,7 @@ def power_rows(post, Z: np.ndarray, weight: np.ndarray) -> Tuple[np.ndarray, lis
     """
     s, hp = post.structure, post.hyper
     X = Z / hp.sx
-    p0 = np.einsum('jn,jn->j', Z * post.mean.diag(Z), Z)
+    p0 = np.einsum('jn,jn->j', post.mean.raw_force(Z), Z)
     G = [np.zeros((Z.shape[0], post.n)) for _ in range(s.N)]
     ls = np.exp(hp.log_ls)
     for e, (m, n) in enumerate(s.elems):

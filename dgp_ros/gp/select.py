@@ -203,7 +203,7 @@ def _couplings_earn(m: int, pick: str, err: dict, forward: dict) -> bool:
 
 def select_elements(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.ndarray,
                     fresh: Hyper, warm: bool = False, folds: int = FOLDS,
-                    reversing: bool = False, **learn_kw):
+                    reversing: bool = False, keep_all: bool = False, **learn_kw):
     """
     Choose each output's elements by blocked cross-validation (module docstring).
 
@@ -227,6 +227,12 @@ def select_elements(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.n
         Where every velocity reverses, try the couplings too, beside the own element, and keep
         them only where they beat it in the blocks and on the newest block predicted by a fit
         (hyper-parameters too) on the rows before it (``_couplings_earn``).
+    keep_all : bool
+        The prior carries the couplings of a persistent column (``gp.coupled``: an aircraft's
+        airspeed): where ``'all'`` is the one choice, it is kept whatever the blocks say. The
+        blocks of a coverage buffer lie where the others did not reach, and beside such a prior
+        they judged the GP 1.5-2x worse 63 s into an approach where one step ahead it was 5-10x
+        better (the online blend by earned gains weighs it where it is worse).
     learn_kw
         The other settings of ``hyper.learn_hyper`` (the model's).
 
@@ -271,18 +277,13 @@ def select_elements(structure: Structure, hp: Hyper, Qd: np.ndarray, resid: np.n
             evals += ev
     out = hp.copy()
     choices = []
-    # a velocity that never nears zero (an aircraft's airspeed): the GP keeps its couplings
-    # whatever the blocks say; the blocks of a coverage buffer lie where the others did not
-    # reach, and beside a prior that carries the couplings (``gp.coupled``) they judged the GP
-    # 1.5-2x worse 63 s into an approach where one step ahead it was 5-10x better (the online
-    # blend by earned gains weighs it where it is worse)
-    persistent = cands == ('all',) and structure.kind != 'ard'
+    keep = keep_all and cands == ('all',)
     for m, rows in enumerate(structure.rows):
         pick = 'none'
         for choice in fitted:
             if choice == 'all' and len(cands) > 1:
                 continue
-            if err[choice][m] < (1.0 - MARGINS[choice]) * err[pick][m] or persistent:
+            if err[choice][m] < (1.0 - MARGINS[choice]) * err[pick][m] or keep:
                 pick = choice
         if 'all' in forward and _couplings_earn(m, pick, err, forward):
             pick = 'all'

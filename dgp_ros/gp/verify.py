@@ -139,10 +139,7 @@ def _d_interval(T: CorrectionTerms, lo: np.ndarray, hi: np.ndarray):
     dmax *= dmax
     dc = c[:, None, :] - X[None, :, :]
     dc *= dc
-    Dlo = np.zeros((B, N, N))
-    Dhi = np.zeros((B, N, N))
-    idx = np.arange(N)
-    Dlo[:, idx, idx], Dhi[:, idx, idx] = T.mean.diag_bounds(lo, hi)
+    Dlo, Dhi = T.mean.matrix_bounds(lo, hi)          # the prior's (gp.coupled: its couplings)
     qmax = np.maximum(np.abs(lo), np.abs(hi))                       # (B, N)
     sens = np.zeros((B, N))
     for e, (m, n) in enumerate(T.elems):

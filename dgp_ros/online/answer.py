@@ -273,13 +273,15 @@ def guarantee(snap: Optional[Snapshot], passivity: str) -> str:
     Return the guarantee the answers from ``snap`` are served under (``gp.GUARANTEES`` key).
 
     The served model's certificate as it is (a record, read at no cost); before the first fit
-    the prior ``diag(m_d)``, ``m_d >= 0``: 'psd' (as the learner's status says).
+    the prior's: ``diag(m_d)``, ``m_d >= 0``: 'psd' (as the learner's status says); a prior with
+    couplings (``gp.coupled``) is passive by its projection: 'pointwise'.
     """
     if passivity == 'none':
         return 'none'
     model = None if snap is None else snap.model
     if model is None:
-        return 'psd'
+        prior = None if snap is None else snap.prior
+        return 'psd' if prior is None or prior.is_diagonal else 'pointwise'
     try:
         return str(model.certificate().guarantee)
     except Exception:       # noqa: BLE001 - an unfitted model: its answers fall back to the prior

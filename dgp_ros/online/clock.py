@@ -36,6 +36,11 @@ class LearningClock:
         """Tell whether learning uses the arrival time (the stamps do not advance)."""
         return self._arrival_t0 is not None
 
+    @property
+    def last(self) -> Optional[float]:
+        """Return the last learning time given (s), None before any."""
+        return self._last_t
+
     def time(self, stamp: float) -> float:
         """Return the learning time of a message stamped ``stamp``, in seconds."""
         advancing = self._raw_last is not None and stamp > self._raw_last

@@ -92,15 +92,8 @@ class OnlineEstimator:
         self.stream: Optional[StreamPart] = None    # made at the first accepted message
 
     def _stream_for(self, N: int) -> Optional[StreamPart]:
-        """
-        Return the stream part (``stream_part``) where it belongs, made once N is known.
-
-        A system that is not an arm (no ``inverse_dynamics``: an arm's path fakes couplings),
-        with the parametric part from every sample (``prior='auto'``, not the ARD baseline),
-        while learning (a frozen model answers as its file says, exactly); else None.
-        """
-        c = self.config
-        if not c.learning or c.inverse_dynamics or c.prior != 'auto' or c.model == 'ard':
+        """Return the stream part where it belongs (``StreamPart.belongs``), made for N."""
+        if not StreamPart.belongs(self.config):
             self.stream = None
         elif self.stream is None or self.stream.N != N:
             self.stream = StreamPart(N)
@@ -220,15 +213,16 @@ class OnlineEstimator:
                       else [accepted] if accepted else [])
             for group in groups:
                 Q = np.array([a[3] for a in group])
-                pred, part = self._weighed(self._estimate(
-                    self._learner.snapshot(self._want_stddev), Q), Q)
+                snap = self._learner.snapshot(self._want_stddev)
+                pred, part = self._estimate(snap, Q)
                 keep = []
                 for i, stamp, names, qd, tau, q in group:
                     added, residuals = self._learner.learn(self.clock.time(stamp), qd, tau, q)
                     keep.append((i, stamp, names, qd, tau, added, residuals))
                 if part is not None:
-                    part[0].learn(np.array([a[1] for a in group], float), Q,
-                                  np.array([a[4] for a in group]), part[1], part[2])
+                    self.stream.learn(np.array([a[1] for a in group], float), Q,
+                                      np.array([a[4] for a in group]), *part, pred[0],
+                                      self._lag(snap))
                 self._answer(keep, pred, out, t0)
         return out
 
@@ -313,11 +307,12 @@ class OnlineEstimator:
                 return Answers(rows, joints, stamps[:0], e, e, None, e, e, None, np.zeros(0),
                                np.zeros(0), np.zeros(0, dtype=object),
                                time.perf_counter() - t0, [])
-            pred, part = self._weighed(
-                self._estimate(self._learner.snapshot(self._want_stddev), qd), qd)
+            snap = self._learner.snapshot(self._want_stddev)
+            pred, part = self._estimate(snap, qd)
             self._learner.learn_many(self.clock.times(stamps), qd, tau, q)
             if part is not None:
-                part[0].learn(np.asarray(stamps, float), qd, tau, part[1], part[2])
+                self.stream.learn(np.asarray(stamps, float), qd, tau, *part, pred[0],
+                                  self._lag(snap))
             return self._array_answers(joints, rows, stamps, qd, tau, q, pred, t0)
 
     def _array_answers(self, joints, rows, stamps, qd, tau, q, pred, t0) -> Answers:
@@ -337,27 +332,28 @@ class OnlineEstimator:
 
     # ------------------------------------------------------------------ estimates
     def _estimate(self, snap: Optional[Snapshot], Q: np.ndarray):
-        """(tau_hat, std, D, source, confidence) at velocities Q (k, N) from ``snap`` (gate)."""
-        self.health.answered(guarantee(snap, self.config.passivity), Q.shape[0])
-        return answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
+        """
+        Answer velocities Q (k, N) from ``snap`` (the gate) and the stream part.
+
+        Returns ((tau_hat, std, D, source, confidence), part: ``StreamPart.weigh_answers``'s, or
+        None without a stream part) and counts the answers' guarantee:
+        the served model's, 'pointwise' where the stream part has a share (its projection).
+        """
+        pred = answer(snap, Q, self._want_stddev, self._want_damping, self.config.passivity,
                       self.health, self._learner.note_error, self._plans)
-
-    def _weighed(self, pred: tuple, Q: np.ndarray):
-        """
-        Weigh the model's answers ``pred`` with the stream part's (``stream_part``).
-
-        Returns (pred', part): part is (the StreamPart, the model's forces, the part's forces
-        or None) for its ``learn``, or None where there is no stream part.
-        """
         stream = self._stream_for(Q.shape[1])
-        if stream is None:
-            return pred, None
-        tau, std, D, source, conf = pred
-        t2, D2, c2, mine = stream.weigh(Q, tau, D, conf)
-        if t2 is not tau:
-            source = source.copy()
-            source[:] = [s if s == 'model' else 'parametric' for s in source]
-        return (t2, std, D2, source, c2), (stream, tau, None if mine is None else mine[0])
+        out, part = (pred, None) if stream is None else stream.weigh_answers(pred, Q)
+        g = guarantee(snap, self.config.passivity)
+        if out[0] is not pred[0] and g != 'none':
+            g = 'pointwise'
+        self.health.answered(g, Q.shape[0])
+        return out, part
+
+    def _lag(self, snap: Optional[Snapshot]) -> float:
+        """Return how far (s of learning time) ``snap`` lags behind the newest message."""
+        if snap is None or snap.learned_through is None or self.clock.last is None:
+            return 0.0
+        return max(0.0, self.clock.last - float(snap.learned_through))
 
     def predict(self, Qs) -> np.ndarray:
         """Estimates (k, N) at velocities Qs with the rules of ``process`` (no learning)."""
@@ -468,6 +464,9 @@ class OnlineEstimator:
                 # the lean pass disagreed with the model (answers came from the model)
                 d['answer_plan_mismatches'] = self._plans.mismatches
             warnings = list(learner.get('warnings', []))
+            if self.stream is not None:
+                d.update(self.stream.status())
+                warnings += self.stream.verdict()
             if self.clock.on_arrival:
                 warnings.insert(0, 'message stamps do not advance (header.stamp constant or 0): '
                                 "learning uses the arrival time; fix the driver's stamps")

@@ -16,12 +16,15 @@ This part is learned where every accepted message passes, at every message, in m
   long history's ridge (``dynamics.coupling_track.COUPLING_RIDGE``), solved every
   :data:`SOLVE_EVERY_S` of stamps;
 * **its one-step skill beside the model's**: every message is answered by both before either
-  learns it; the exponentially weighted squared errors over :data:`SKILL_HALF_LIFE_S` weigh the
-  two answers per output, ``u = e_model / (e_model + e_part)`` to this part: a starved learner
+  learns it; the exponentially weighted squared errors over :data:`SKILL_HALF_LIFE_S` give the
+  part one weight ``u`` (:meth:`StreamPart.share`, 0 wherever the model does no worse) and the
+  model ``1 - u``: a starved learner
   whose snapshot lags, a first fit that oscillates, a first visit the window has not seen, and
   the part answers; where the D-GP knows better, it does;
-* **passive**: its own answer is projected onto ``qd^T tau >= 0``, and so is the weighed one
-  (per-output weights are no convex combination of the two vectors).
+* **passive**: its own answer is projected onto ``qd^T tau >= 0`` (its matrix gets the
+  projection's ``lam I``: passive at every velocity), and the weighed answer is a convex
+  combination of two passive damping matrices. An answer the part has a share in counts as
+  projected (``guarantee`` 'pointwise'); with no share it is the model's, under its certificate.
 
 Before a column has shown itself persistent (and on an arm, or where every velocity reverses)
 the part is silent: the answers are the model's, exactly.
@@ -34,7 +37,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
 from dgp_ros.dynamics.coupling_track import COUPLING_RIDGE, CouplingTrack
-from dgp_ros.gp.policy import projection_lambda
+from dgp_ros.gp.policy import project_passive, projection_lambda
 
 __all__ = ['StreamPart', 'HALF_LIFE_S', 'SKILL_HALF_LIFE_S', 'SOLVE_EVERY_S']
 
@@ -46,6 +49,13 @@ SKILL_HALF_LIFE_S = 0.5
 SKILL_HALF_LIFE_SAMPLES = 10
 #: the weights are solved for at most this often (stamp time, s)
 SOLVE_EVERY_S = 0.005
+#: the last word (``verdict``): the published answers against the part alone over this
+#: half-life of stamp time (s); worse by more than this fraction is said
+VERDICT_HALF_LIFE_S = 5.0
+VERDICT_MARGIN = 0.1
+#: a snapshot this far (s of stamps) behind the message it answers is a learner behind its
+#: stream; said for this long after it was last seen
+LAG_WARN_S, LAG_MEMORY_S = 1.0, 10.0
 
 
 class StreamPart:
@@ -71,6 +81,24 @@ class StreamPart:
         self.e_model, self.e_part, self.e_zero = z.copy(), z.copy(), z.copy()
         self.scored = 0.0
         self.samples = 0
+        # the last word: published answers and the part alone over VERDICT_HALF_LIFE_S
+        self.v_pub, self.v_part, self.v_zero = z.copy(), z.copy(), z.copy()
+        self.v_scored = 0.0
+        self.lag_at: Optional[float] = None         # stamp of the last lag beyond LAG_WARN_S
+        self.lag_max = 0.0                          # the largest of those lags (s)
+
+    @staticmethod
+    def belongs(config) -> bool:
+        """
+        Tell whether an estimator with ``config`` has a stream part.
+
+        A system that is not an arm (no ``inverse_dynamics``: an arm's path fakes couplings),
+        with the parametric part from every sample (``prior='auto'``; not the ARD baseline, nor
+        the paper's Theorem 1, which needs a diagonal prior), while learning (a frozen model
+        answers exactly as its file says).
+        """
+        return bool(config.learning and not config.inverse_dynamics and config.prior == 'auto'
+                    and config.model != 'ard' and config.passivity != 'paper')
 
     # ------------------------------------------------------------------ answers
     @property
@@ -88,20 +116,30 @@ class StreamPart:
         psi = basis.psi(Q, c)                                     # (k, Kc)
         g = psi @ self.W.T                                        # (k, N): D[:, :, p] * vref^2/v
         v = Q[:, p] / basis.vref[c] ** 2
-        tau = g * (v * Q[:, p])[:, None]
-        lam = projection_lambda(Q, tau)
+        raw = g * (v * Q[:, p])[:, None]
+        lam = projection_lambda(Q, raw)
         D = np.zeros((Q.shape[0], self.N, self.N))
         D[:, :, p] = g * v[:, None]
         idx = np.arange(self.N)
         D[:, idx, idx] += lam[:, None]
-        return tau + lam[:, None] * Q, D
+        return project_passive(Q, raw), D
 
-    def shares(self) -> np.ndarray:
-        """Return the part's weight per output ``u`` (N,), 0 while silent or before any score."""
+    def share(self) -> float:
+        """
+        Return the part's weight ``u`` in [0, 1]: 0 while silent or before any score.
+
+        One number for every output (a convex combination of the two damping matrices: an
+        answer is passive wherever both are), from the sums over the outputs of their recent
+        one-step NMSE ``r``: ``2 (r_model - r_part) / (r_model + r_part)`` clipped to [0, 1], so
+        the model answers alone (and under its own certificate) wherever it does no worse than
+        the part, the part alone wherever the model does 3x worse or more, and the two are
+        weighed between (the model 2x worse: 0.67).
+        """
         if self.W is None or self.scored <= 0.0:
-            return np.zeros(self.N)
-        den = self.e_model + self.e_part
-        return np.where(den > 0.0, self.e_model / np.where(den > 0.0, den, 1.0), 0.0)
+            return 0.0
+        z = np.where(self.e_zero > 0.0, self.e_zero, 1.0)
+        rm, rp = float(np.sum(self.e_model / z)), float(np.sum(self.e_part / z))
+        return min(1.0, max(0.0, 2.0 * (rm - rp) / (rm + rp))) if rm + rp > 0.0 else 0.0
 
     def weigh(self, Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray],
               conf: Optional[np.ndarray] = None):
@@ -112,20 +150,27 @@ class StreamPart:
         no share, the model's answers come back unchanged (the same arrays).
         """
         part = self.answer(Q)
-        u = self.shares()
-        if part is None or not np.any(u > 0.0):
+        u = self.share()
+        if part is None or u <= 0.0:
             return tau, D, conf, part
         tp, Dp = part
         out = (1.0 - u) * tau + u * tp
-        lam = projection_lambda(Q, out)
-        out = out + lam[:, None] * Q
         if D is not None:
-            D = (1.0 - u)[:, None] * D + u[:, None] * Dp
-            idx = np.arange(self.N)
-            D[:, idx, idx] += lam[:, None]
+            D = (1.0 - u) * D + u * Dp
         if conf is not None:
             conf = (1.0 - u) * conf + u * self.confidence()
         return out, D, conf, part
+
+    def weigh_answers(self, pred: tuple, Q: np.ndarray):
+        """
+        Weigh the gate's answers ``pred`` = (tau, std, D, source, confidence) at Q (k, N).
+
+        Returns (pred', (the model's forces, the part's forces or None)): the second for
+        ``learn``, which scores both before either learns the messages.
+        """
+        tau, std, D, source, conf = pred
+        t2, D2, c2, mine = self.weigh(Q, tau, D, conf)
+        return (t2, std, D2, source, c2), (tau, None if mine is None else mine[0])
 
     def confidence(self) -> np.ndarray:
         """How much of the part's answer a controller may use, (N,): 1 - its NMSE, in [0, 1]."""
@@ -135,17 +180,23 @@ class StreamPart:
 
     # ------------------------------------------------------------------ learning
     def learn(self, stamps: np.ndarray, Q: np.ndarray, T: np.ndarray,
-              model: np.ndarray, part: Optional[np.ndarray]) -> None:
+              model: np.ndarray, part: Optional[np.ndarray],
+              published: Optional[np.ndarray] = None, lag: float = 0.0) -> None:
         """
         Learn accepted messages: stamps (k,) s, velocities Q and forces T (k, N), in order.
 
         ``model``, ``part`` (k, N): what the model and this part answered them before either
         learned them (``part`` None: the part was silent); they move the skill first.
+        ``published`` (k, N): the answers that went out (default the model's); ``lag``: how far
+        (s of stamps) the model answered from lagged behind the newest of them (``verdict``).
         """
         stamps = np.asarray(stamps, float)
         if not stamps.size:
             return
-        self._score(stamps, T, model, part)
+        self._score(stamps, T, model, part, model if published is None else published)
+        if lag > LAG_WARN_S:
+            self.lag_at = float(stamps[-1])
+            self.lag_max = max(self.lag_max, float(lag))
         dead = self.track.observe(Q)
         if dead:
             keep = np.setdiff1d(np.arange(self.track.K), self.track.drop_slices(dead))
@@ -192,7 +243,7 @@ class StreamPart:
         if np.all(np.isfinite(W)):
             self.W, self._col = W, c
 
-    def _score(self, stamps, T, model, part) -> None:
+    def _score(self, stamps, T, model, part, published) -> None:
         """Move the one-step errors of the model, the part and no answer (module docstring)."""
         for i in range(stamps.size):
             dt = 0.0 if self._t is None else max(float(stamps[i]) - (
@@ -204,12 +255,48 @@ class StreamPart:
             ep = (t * t) if part is None else (part[i] - t) ** 2
             self.e_part = g * self.e_part + (1.0 - g) * ep
             self.scored = g * self.scored + (1.0 - g)
+            if part is not None:            # the last word: once the part answers
+                v = 0.5 ** (dt / VERDICT_HALF_LIFE_S)
+                self.v_zero = v * self.v_zero + (1.0 - v) * t * t
+                self.v_pub = v * self.v_pub + (1.0 - v) * (published[i] - t) ** 2
+                self.v_part = v * self.v_part + (1.0 - v) * ep
+                self.v_scored = v * self.v_scored + (1.0 - v)
+
+    def verdict(self) -> list:
+        """
+        Return what the status must say of the last seconds (plain sentences; [] if nothing).
+
+        The published answers did worse than the part alone over the last seconds (NMSE summed
+        over the outputs, more than ``VERDICT_MARGIN`` worse), or the model they came from lagged
+        behind the stream within the last ``LAG_MEMORY_S`` (a learner short of CPU: a quiet
+        computer answers better).
+        """
+        out = []
+        if self.v_scored > 0.5:
+            z = np.where(self.v_zero > 0.0, self.v_zero, 1.0)
+            pub, part = float(np.sum(self.v_pub / z)), float(np.sum(self.v_part / z))
+            if pub > (1.0 + VERDICT_MARGIN) * part and part > 0.0:
+                out.append(f'the answers of the last seconds did worse than the parametric part '
+                           f'alone (NMSE {pub / part:.2g}x its)')
+        if self.lag_at is not None and self._t is not None and \
+                self._t - self.lag_at <= LAG_MEMORY_S:
+            out.append(f'the learner fell behind the stream (by up to {self.lag_max:.1f} s in '
+                       f'the last {LAG_MEMORY_S:.0f} s): answers came from an older model, '
+                       'weighed with the part learned on the message path; a quiet computer '
+                       'answers better')
+        elif self.lag_at is not None:
+            self.lag_max = 0.0
+        return out
 
     # ------------------------------------------------------------------ report
     def status(self) -> dict:
         """Return what /diagnostics says of the part."""
         tr = self.track
         c = None if self.W is None else self._col
+        z = np.where(self.v_zero > 0.0, self.v_zero, 1.0)
+        part = float(np.sum(self.v_part / z))
         return {'stream_part': 'silent' if c is None else f'column {tr.cols[c]}',
-                'stream_part_share': [round(float(x), 3) for x in self.shares()],
+                'stream_part_vs_answers': round(float(np.sum(self.v_pub / z)) / part, 4)
+                if part > 0.0 and self.v_scored > 0.5 else None,
+                'stream_part_share': round(self.share(), 3),
                 'stream_part_samples': int(self.samples)}

@@ -53,6 +53,9 @@ class Structure:
             config.prior
         self._bias = bool(config.bias)
         self._elements = bool(config.history_elements)
+        # the couplings of a persistent column (gp.coupled): not for the paper's Theorem 1,
+        # which needs a diagonal prior
+        self._couplings = config.passivity != 'paper'
         self._inverse = inverse
         self._health = health
         self._history: Optional[LongHistory] = None
@@ -63,6 +66,7 @@ class Structure:
         self._fixed: Optional[tuple] = None
         self._rmax: Optional[np.ndarray] = None    # largest |residual| learned per joint
         self._reselect_now = False    # re-select at the next occasion (a model to be saved)
+        self._names: Optional[List[str]] = None     # the velocities' names (the label)
 
     # ------------------------------------------------------------------ the history
     def push(self, stamp: float, q, qd, qdd, r, N: int, names: List[str]) -> Optional[np.ndarray]:
@@ -70,6 +74,7 @@ class Structure:
         if not self.auto:
             return None
         h = self._health
+        self._names = list(names) if names else None
         if self._history is None:
             basis = None
             if self._inverse is not None and q is not None:
@@ -83,7 +88,8 @@ class Structure:
             # random flights and the default flight's beta 4x worse (docs/BENCHMARKS.md)
             arm = self._inverse is not None
             self._history = LongHistory(N, basis, default, offsets=arm,
-                                        elements=self._elements and arm, couplings=not arm)
+                                        elements=self._elements and arm,
+                                        couplings=self._couplings and not arm)
             h.correction_basis = '' if basis is None else basis.source
         try:
             return self._history.push(stamp, q, qd, qdd, r)
@@ -110,7 +116,7 @@ class Structure:
             fit = self._history.fit(fit.family, fit.offsets, False)
             h.corrections_refused += 1
         self._param = fit
-        h.structure = fit.label()
+        h.structure = fit.label(self._names)
         h.structure_scores = {', '.join(map(str, k)): round(v, 4)
                               for k, v in sorted(fit.scores.items(), key=lambda kv: kv[1])[:6]}
         h.joint_elements = {} if fit.element is None else fit.element.summary()

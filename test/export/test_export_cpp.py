@@ -1,16 +1,22 @@
 """
 Generated C++ of frozen models against Python and the frozen node (issue 43).
 
-Three models, each trained once per session on short data: a Full-D arm model (7 joints, the
+The models, each trained once per session on short data: a Full-D arm model (7 joints, the
 eigenvalue floor ``psd-clip``, earned gains below 1: the per-joint blend), a Diag arm model with
-a URDF regressor correction and offsets (the Panda's kinematics) and an A320 model (3 velocities,
-a domain proof: the C2 blend). Each header is compiled with the system compiler
+a URDF regressor correction and offsets (the Panda's kinematics), an A320 model (3 velocities,
+a domain proof: the C2 blend), a Diag arm model with per-joint elements in its prior, and two
+models of an aircraft-like stream whose prior carries the couplings of the airspeed's column
+(``gp.coupled``: one with a zero base, one with a friction base and earned gains: the blend
+joint by joint toward the coupled prior, then projected). Each header is compiled with the
+system compiler
 (``-std=c++17 -Wall -Wextra -Werror -O2``; skipped with the reason where there is none) and
 evaluated on random velocities inside the data and 10-30x outside, against
 ``load_model(M)`` proven as the node proves it (``predict``, ``damping_matrix``,
 ``predict_residual``) and against the frozen node's published answers
 (``OnlineEstimator(learning=False, model_path=M)``): relative error below 1e-9, no negative
-power. Refusals, the tool's exit status, the example program and the exp are tested too.
+power (within rounding where the blend toward a coupled prior is projected, as in Python).
+The coupled models are also compared where the prior's raw power is negative (its projection
+acts). Refusals, the tool's exit status, the example program and the exp are tested too.
 """
 import os
 import pathlib
@@ -80,7 +86,49 @@ def _train(directory):
     m.grounds_ = _grounds(7, 5)
     out['element_arm'] = str(d / 'element_arm.npz')
     m.save(out['element_arm'])
+    m = _coupled_model(friction=False)
+    out['coupled'] = str(d / 'coupled.npz')
+    m.save(out['coupled'])
+    m = _coupled_model(friction=True)
+    m.grounds_ = _grounds(3, 7)
+    out['coupled_gains'] = str(d / 'coupled_gains.npz')
+    m.save(out['coupled_gains'])
     return out
+
+
+def _aircraft(t):
+    """Velocities [alpha, beta, airspeed] and forces of an aircraft-like stream (test/gp)."""
+    a = 0.05 + 0.07 * np.sin(0.5 * t + 1.0)
+    b = 0.03 * np.sin(0.7 * t)
+    V = 90.0 + 6.0 * np.sin(0.3 * t)
+    qS = 0.5 * 1.225 * V * V * 122.6
+    drag = qS * (0.03 + 0.6 * a * a + 0.4 * b * b + 0.05 * a)
+    side = qS * (-0.8 * b + 0.1 * a * b)
+    lift = qS * (0.4 + 5.0 * a - 2.0 * a ** 3 + 0.3 * np.abs(b))
+    return np.stack([a, b, V], axis=1), np.stack([drag, -side, lift], axis=1)
+
+
+def _coupled_model(friction, n=150, seed=8):
+    """
+    Return a certified Full-D-GP of ``_aircraft`` whose prior carries the airspeed's couplings.
+
+    The couplings' weights are fitted to the stream by least squares and clipped to its box
+    (``gp.coupled``); the base is zero (the force is the couplings alone) or, with
+    ``friction``, a friction prior of random coefficients the GP corrects.
+    """
+    from dgp_ros.dynamics.parametric import EPS_S, F, FRICTION_EPS, STRIBECK_VS
+    from dgp_ros.gp import make_model
+    from dgp_ros.gp.coupled import CoupledMean, CouplingBasis
+    from dgp_ros.gp.means import BasisFrictionMean
+    Q, T = _aircraft(np.linspace(0.0, 12.0, n))
+    basis = CouplingBasis(3, [2], [Q[0, 2]])
+    W = np.linalg.lstsq(basis.columns(Q), T, rcond=None)[0].T
+    base = BasisFrictionMean(np.zeros((3, 1)), (), 0.01, ())
+    if friction:
+        coef = np.abs(np.random.default_rng(seed).normal(0.0, 1e3, (3, F)))
+        base = BasisFrictionMean(coef, FRICTION_EPS, EPS_S, STRIBECK_VS)
+    prior = CoupledMean(base, basis.boxed(Q.min(axis=0), Q.max(axis=0)), W)
+    return make_model('full', prior=prior, bias=False, passivity='certified').fit(Q, T)
 
 
 def _element_prior(N=7, seed=6):
@@ -149,9 +197,16 @@ def test_guarantees_as_proven(built):
     assert built['a320'][0].guarantee == 'passive-on-domain'
     assert built['a320'][0].weight[0] == 'domain'
     assert list(built['element_arm'][0].prior['element']['joints']) == [0, 2, 5]
+    for name in ('coupled', 'coupled_gains'):
+        spec = built[name][0]
+        assert spec.guarantee == 'passive-on-domain' and spec.weight[0] == 'domain'
+        assert [c['p'] for c in spec.prior['coupled']['columns']] == [2]
+    assert built['coupled_gains'][0].grounds is not None
+    assert 'coupled' not in built['a320'][0].prior
 
 
-@pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320', 'element_arm'])
+@pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320', 'element_arm', 'coupled',
+                                  'coupled_gains'])
 @pytest.mark.parametrize('far', [False, True], ids=['inside', 'outside'])
 def test_equals_python_and_frozen_node(built, name, far):
     spec, model, exe, d, path = built[name]
@@ -168,9 +223,64 @@ def test_equals_python_and_frozen_node(built, name, far):
     for key in ('damping', 'model_damping', 'friction'):
         if key == 'friction' and spec.correction is not None:
             continue                     # the correction is conservative, not dissipative
-        assert int((np.einsum('ij,ij->i', Qd, out[key]) < 0).sum()) == 0, key
+        _assert_passive(spec, Qd, out[key], key)
     if far:
         assert np.any(np.abs(out['damping'] - out['model_damping']) > 0), 'gate never acted'
+
+
+def _assert_passive(spec, Qd, tau, key):
+    """
+    Assert ``qd . tau >= 0`` at every velocity.
+
+    Where a coupled prior is projected an answer lies on ``qd . tau = 0``, and the sign of its
+    computed power depends on the order of the sum (numpy's einsum gave -4e-18 relative where
+    the header's joint-after-joint sum gives 0): its power is summed as the header sums it.
+    """
+    if 'coupled' in spec.prior:
+        power = Qd[:, 0] * tau[:, 0]
+        for i in range(1, spec.N):
+            power = power + Qd[:, i] * tau[:, i]
+    else:
+        power = np.einsum('ij,ij->i', Qd, tau)
+    assert int((power < 0.0).sum()) == 0, key
+
+
+def _wind(k, seed):
+    """Return k velocities of the coupled models where the prior's raw power is often < 0."""
+    rng = np.random.default_rng(seed)
+    Q = rng.standard_normal((k, 3)) * np.array([0.1, 0.05, 10.0]) * \
+        rng.choice([1.0, 30.0], (k, 1))
+    Q[:, 2] += 90.0 * rng.choice([1.0, -1.0, 0.0], k)
+    return Q * rng.choice([1e-4, 1e-2, 1.0, 3.0], (k, 1))     # |qd| < max_abs_velocity
+
+
+@pytest.mark.parametrize('name', ['coupled', 'coupled_gains'])
+def test_coupled_prior_where_it_is_projected(built, name):
+    # tailwind, reversed flow, hovering: the couplings' raw power is negative at many of these
+    # velocities, so the prior's projection (and the blend's) acts, as it does in Python
+    spec, model, exe, d, path = built[name]
+    Qd = _wind(1000, 21)
+    raw = np.einsum('ij,ij->i', Qd, model.mean_.raw_force(Qd))
+    assert np.mean(raw < 0) > 0.1
+    out = evaluate(exe, Qd, Qd, d)
+    assert rel(out['model_damping'], model.predict(Qd)) < TOL
+    assert rel(out['model_damping_matrix'], model.damping_matrix(Qd)) < TOL
+    tau, D = _node_answers(spec, path, Qd[:300])
+    assert rel(out['damping'][:300], tau) < TOL
+    assert rel(out['damping_matrix'][:300], D) < TOL
+    for key in ('damping', 'model_damping'):
+        _assert_passive(spec, Qd, out[key], key)
+    assert np.any(np.abs(out['damping'] - out['model_damping']) > 0), 'gate never acted'
+
+
+def test_coupled_features_are_checked(built, monkeypatch):
+    """A basis whose features the export does not know is refused, not exported wrong."""
+    from dgp_ros.export import model_spec, spec as S
+    model = built['coupled'][1]
+    known = S.psi_terms
+    monkeypatch.setattr(S, 'psi_terms', lambda n, paired: known(n, paired)[::-1])
+    with pytest.raises(ExportError, match='psi_terms'):
+        model_spec(model)
 
 
 def test_correction_matches_the_regressor(built):

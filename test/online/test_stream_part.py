@@ -1,0 +1,99 @@
+"""The stream part (online/stream_part.py): where it answers, what it answers, and when not."""
+import os
+import sys
+
+import numpy as np
+
+from dgp_ros.online import EstimatorConfig, OnlineEstimator
+from dgp_ros.online.stream_part import StreamPart
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'gp'))
+from test_coupled import aircraft  # noqa: E402,I100,I201
+
+NAMES = ['alpha', 'beta', 'airspeed']
+
+
+def test_the_part_learns_an_aircraft_from_every_sample_and_answers_passively():
+    part = StreamPart(3)
+    t = np.arange(0.0, 20.0, 1.0 / 60.0)
+    Q, T = aircraft(t)
+    errs = []
+    for i in range(len(t)):
+        mine = part.answer(Q[i:i + 1])
+        if mine is not None and t[i] > 1.0:
+            errs.append((mine[0][0] - T[i]) ** 2)
+            assert np.allclose(np.einsum('kij,kj->ki', mine[1], Q[i:i + 1]), mine[0])
+        # a model that answers nothing: the part's share grows toward 1
+        part.learn(t[i:i + 1], Q[i:i + 1], T[i:i + 1], np.zeros((1, 3)),
+                   None if mine is None else mine[0])
+    nmse = np.mean(errs, axis=0) / T.var(axis=0)
+    assert np.all(nmse < 1e-4), nmse
+    assert part.share() > 0.99
+    rng = np.random.default_rng(0)
+    for scale in (1.0, 1e3):                       # inside and far outside the data
+        Qr = rng.standard_normal((20000, 3)) * [0.1, 0.05, 30.0] * scale + [0, 0, 90.0]
+        tau, D = part.answer(Qr)
+        assert np.all(np.einsum('kn,kn->k', Qr, tau) >= 0.0)
+
+
+def test_a_model_that_does_no_worse_answers_alone():
+    part = StreamPart(3)
+    t = np.arange(0.0, 5.0, 1.0 / 60.0)
+    Q, T = aircraft(t)
+    for i in range(len(t)):
+        mine = part.answer(Q[i:i + 1])
+        part.learn(t[i:i + 1], Q[i:i + 1], T[i:i + 1], T[i:i + 1],    # a perfect model
+                   None if mine is None else mine[0])
+    assert part.share() == 0.0
+    tau = np.ones((2, 3))
+    assert part.weigh(Q[:2], tau, None)[0] is tau      # unchanged, the same array
+
+
+def _stream(est, t, Q, T):
+    out = np.zeros_like(T)
+    for i in range(len(t)):
+        out[i] = est.predict(Q[i])[0]
+        est.process(float(t[i]), NAMES, Q[i], T[i])
+    return out
+
+
+def test_the_estimator_weighs_the_part_and_counts_its_answers_as_projected():
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync'))
+    t = np.arange(0.0, 6.0, 1.0 / 60.0)
+    Q, T = aircraft(t)
+    try:
+        P = _stream(est, t, Q, T)
+        assert est.stream is not None and est.stream.samples == len(t)
+        d = est.diagnostics()
+        assert 'couplings through airspeed' in d['structure']
+        err = ((P[60:] - T[60:]) ** 2).mean(axis=0) / T.var(axis=0)
+        assert np.all(err < 1e-3), err
+        # every answer counted once, under a guarantee
+        assert sum(d['answers_by_guarantee'].values()) == len(t)
+    finally:
+        est.close()
+
+
+def test_no_part_on_an_arm_a_frozen_model_or_the_papers_mode():
+    for cfg in (EstimatorConfig(refit_mode='sync', inverse_dynamics='urdf'),
+                EstimatorConfig(refit_mode='sync', learning=False),
+                EstimatorConfig(refit_mode='sync', passivity='paper'),
+                EstimatorConfig(refit_mode='sync', prior='viscous')):
+        assert not StreamPart.belongs(cfg)
+    assert StreamPart.belongs(EstimatorConfig(refit_mode='sync'))
+
+
+def test_a_reversing_system_silences_the_part_within_its_first_swing():
+    est = OnlineEstimator(EstimatorConfig(refit_mode='sync'))
+    t = np.arange(0.0, 4.0, 0.01)
+    Q = np.stack([np.sin(1.3 * t + 0.2), 0.5 * np.cos(0.9 * t), np.sin(2.1 * t + 1)], 1)
+    T = 2.0 * Q + 0.3 * np.tanh(Q / 0.05)
+    try:
+        for i in range(len(t)):
+            est.process(float(t[i]), ['a', 'b', 'c'], Q[i], T[i])
+        assert not est.stream.active and est.stream.track.cols == []
+        Qr = np.random.default_rng(1).standard_normal((50, 3))
+        tau = np.ones((50, 3))
+        assert est.stream.weigh(Qr, tau, None)[0] is tau       # the model's answers alone
+    finally:
+        est.close()
