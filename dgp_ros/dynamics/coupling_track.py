@@ -19,7 +19,8 @@ import numpy as np
 
 from dgp_ros.gp.coupled import CouplingBasis
 
-__all__ = ['CouplingTrack', 'PERSIST_LEVEL', 'CONFIRM_S', 'COUPLING_RIDGE']
+__all__ = ['CouplingTrack', 'PERSIST_LEVEL', 'CONFIRM_S', 'COUPLING_RIDGE',
+           'COUPLING_RIDGES']
 
 #: a candidate column's velocity must stay at or above this fraction of its RMS
 PERSIST_LEVEL = 0.5
@@ -29,13 +30,16 @@ PERSIST_LEVEL = 0.5
 #: and a prior coupled through one for that second moved their last second (one step ahead) by
 #: up to 100x; the aircraft's first seconds are the stream part's (``online.stream_part``)
 CONFIRM_S = 2.0
-#: the couplings' ridge: this many samples' worth of each feature's mean square (the constant
-#: one has none: the first sample alone answers its own force). 1e-6 let the first samples of
-#: an approach (3 samples, 12 features, beta within 1e-3 rad) answer -1.3e8 N of drag for 9e4;
-#: 1.0 biased a noise-free polynomial of 30 s to 3e-3 of the lift's variance held out (0.01:
-#: 4e-7; seeds 20241 and 777, flights 4, 13, 4, 11: worst 1 s windows 0.008-0.023 against
-#: 0.013-0.036 at 1.0)
-COUPLING_RIDGE = 0.01
+#: the couplings' ridge in the long history: this many samples' worth of each feature's mean
+#: square (the constant one has none: the first sample alone answers its own force), chosen
+#: at each selection among ``COUPLING_RIDGES`` by the CV blocks, ``COUPLING_RIDGE`` before.
+#: Fixed, none was right everywhere: 1e-6 let the first samples of an approach (3 samples, 12 features,
+#: beta within 1e-3 rad) answer -1.3e8 N of drag for 9e4; 1.0 biased a noise-free polynomial of
+#: 30 s to 3e-3 of the lift's variance held out (0.01: 4e-7); 0.01 took the default flight's
+#: drag to 2.3e-3 one step ahead where 0.3 gave 2.8e-4 (the seed-20241 family passed 24 of 24
+#: with each of 0.01, 0.3 and 1.0)
+COUPLING_RIDGES = (0.01, 0.1, 1.0, 10.0)
+COUPLING_RIDGE = 1.0
 
 
 class CouplingTrack:

@@ -2,16 +2,10 @@
 The parametric part of a residual, fitted on the whole learned history, and its structure.
 
 The residual the online learner sees (``effort - tau_rb`` on an arm, the force itself without a
-rigid-body model) is explained by three linear parts, each per joint j:
-
-* friction ``f_j(v) . c_j`` with ``c_j >= 0``: viscous ``v``, Coulomb ``tanh(v / eps_k)`` at the
-  fixed smoothing velocities :data:`FRICTION_EPS` (linear: no search, exact statistics) and
-  Stribeck ``tanh(v / EPS_S) exp(-(v / vs)^2)`` at :data:`STRIBECK_VS`. Every column is odd and
-  its coefficient non-negative, so the friction is passive (``m_d(v) >= 0``,
-  :class:`~dgp_ros.gp.means.BasisFrictionMean`);
-* an offset ``b_j`` (not dissipative, not conservative);
-* a conservative correction ``[Y(q) theta]_j`` of the rigid-body model
-  (:mod:`~dgp_ros.dynamics.conservative`).
+rigid-body model) is explained per joint by linear parts (:mod:`~.parametric`): passive friction
+columns of the joint's velocity, an offset, a conservative correction of the rigid-body model
+(:mod:`~.conservative`), and without a rigid-body model the couplings of a velocity that never
+nears zero (:mod:`~.coupling_track`).
 
 The history is kept as sufficient statistics (the Gram matrix of the columns and their product
 with the residual, per joint) in blocks of :data:`BLOCK_S` seconds of learning time: O(1) memory
@@ -44,7 +38,7 @@ from scipy.linalg import cho_factor, cho_solve
 
 from dgp_ros.gp.joint_element import ElementFit, M_BASIS
 
-from .coupling_track import CONFIRM_S, COUPLING_RIDGE, CouplingTrack
+from .coupling_track import CONFIRM_S, COUPLING_RIDGE, COUPLING_RIDGES, CouplingTrack
 from .element_track import ElementTrack
 from .parametric import F, FAMILIES, friction_columns, ParametricFit
 from .statistics import nonnegative_part, Stats
@@ -71,6 +65,9 @@ REVERSAL = 0.8
 HALF_LIVES_S = (10.0, 30.0, 90.0)
 #: a recent memory serves where it cuts the chosen structure's CV score by this fraction
 RECENT_MARGIN = 0.3
+#: where couplings serve, the friction family serving is kept unless another's CV score is
+#: lower by more than this fraction
+SWITCH_MARGIN = 0.1
 
 
 class LongHistory:
@@ -107,6 +104,7 @@ class LongHistory:
         self.C = 0 if basis is None else int(basis.C)
         self.coupling = CouplingTrack(self.N) if couplings else None
         self.K = 0 if self.coupling is None else self.coupling.K
+        self.ridge = COUPLING_RIDGE             # the couplings' ridge (CV chooses among RIDGES)
         self.L = F + 1 + self.C + self.K
         #: the statistics' columns: the parametric ones (friction, offset, correction,
         #: couplings), then the element's (module docstring)
@@ -272,9 +270,16 @@ class LongHistory:
                 mask[k] = False
         return mask
 
-    def _solve(self, G: np.ndarray, b: np.ndarray, mask: np.ndarray, n: int) -> np.ndarray:
-        """Bounded least squares from the statistics: friction >= 0, the rest free."""
+    def _solve(self, G: np.ndarray, b: np.ndarray, mask: np.ndarray, n: int,
+               ridge: Optional[float] = None) -> np.ndarray:
+        """
+        Bounded least squares from the statistics: friction >= 0, the rest free.
+
+        ridge : the couplings' (``ridge`` samples' worth of each feature's mean square; None:
+        the history's ``self.ridge``, chosen by CV).
+        """
         theta = np.zeros(self.P)
+        r = self.ridge if ridge is None else float(ridge)
         idx = np.flatnonzero(self._identifiable(G, mask))
         if idx.size == 0 or n == 0:
             return theta
@@ -287,7 +292,7 @@ class LongHistory:
         is_k = idx >= k0
         if is_k.any():          # the couplings (module constant); not the constant feature
             first = (idx - k0) % max(self.K, 1) == 0
-            ridge[is_k & ~first] = COUPLING_RIDGE * d[is_k & ~first] / max(n, 1)
+            ridge[is_k & ~first] = r * d[is_k & ~first] / max(n, 1)
         dn = d[~is_k]
         Gs[np.diag_indices_from(Gs)] += ridge + 1e-9 * d + 1e-12 * (
             (dn.mean() if dn.size else 0.0) + 1e-300)
@@ -312,8 +317,14 @@ class LongHistory:
         offs = (False, True) if self.offsets else (False,)
         return [(f, o, c) for f in FAMILIES for o in offs for c in cons]
 
-    def select(self) -> ParametricFit:
-        """Choose the structure by forward-chaining CV (module docstring) and fit it on all."""
+    def select(self, current: Optional[str] = None) -> ParametricFit:
+        """
+        Choose the structure by forward-chaining CV (module docstring) and fit it on all.
+
+        current : the friction family serving now: where couplings serve, another must beat
+        it by ``SWITCH_MARGIN`` (the aircraft's family flipped none / viscous / friction
+        nearly every second of its first minute, each flip a new prior).
+        """
         total = self._total(self._blocks, True)
         scores = {}
         blocks = list(self._blocks)
@@ -337,16 +348,34 @@ class LongHistory:
                 per_joint[cand] = sse / (n_test * var)
                 scores[cand] = float(np.mean(per_joint[cand]))
             best = self._choose(scores)
+            keep = (current, best[1], best[2])
+            if self._coupled() and current in FAMILIES and keep in scores and \
+                    scores[keep] <= (1.0 + SWITCH_MARGIN) * scores[best]:
+                best = keep
             best = (best[0], self._joint_offsets(per_joint, best), best[2])
             k = self._memory(best, folds, at, n_test * var)
+            if self._coupled():         # the couplings' ridge: the one the CV blocks favour
+                self.ridge = min(COUPLING_RIDGES, key=lambda r: self._score(
+                    best, folds, at, n_test * var, k, r))
             if k >= 0:
                 return self._fit(self._total(self._blocks, True, k), best, scores, total.n, k)
         else:
             # the couplings alone where a column persists (an aircraft's: they carry its forces)
-            serving = self.coupling is not None and self.coupling.serving(CONFIRM_S) is not None
-            family = 'none' if serving or not total.n else self.default_family
+            family = 'none' if self._coupled() or not total.n else self.default_family
             best = (family, False, bool(self.C))
         return self._fit(total, best, scores)
+
+    def _score(self, best: tuple, folds: list, at: list, scale: np.ndarray, memory: int,
+               ridge: Optional[float] = None) -> float:
+        """The CV score of ``best`` learned in ``memory`` (-1: all) with the couplings' ridge."""
+        m, blocks = self._mask(*best), list(self._blocks)
+        sse = np.zeros(self.N)
+        for ((G, b), n, test), i in zip(folds, at):
+            if memory >= 0:                     # the whole history's is the fold's own
+                r = self._total(blocks[:i], False, memory)
+                (G, b), n = self._global(r), r.n
+            sse += self._sse(test, self._solve(G, b, m, n, ridge))
+        return float(np.mean(sse / scale))
 
     def _memory(self, best: tuple, folds: list, at: list, scale: np.ndarray) -> int:
         """
@@ -355,29 +384,20 @@ class LongHistory:
         The chosen structure ``best``, fitted on everything before each scored block, on the
         whole history and on each recent one (``HALF_LIVES_S``): the recent memory with the
         lowest mean score serves only where that score is below ``1 - RECENT_MARGIN`` times the
-        whole history's (friction that drifts). scale (N,): per joint, the scored samples
-        times the residual's variance.
+        whole history's (friction that drifts; the couplings of a persistent column follow
+        the air's density, +3 % over an approach: no margin). scale (N,): per joint, the scored
+        samples times the residual's variance.
         """
         if self._recent[0].n >= 0.999 * self._older.n:
             return -1                           # nothing forgotten yet (the shortest forgets most)
-        m = self._mask(*best)
-        blocks = list(self._blocks)
-
-        def score(memory: int) -> float:
-            sse = np.zeros(self.N)
-            for ((G, b), n, test), i in zip(folds, at):
-                if memory >= 0:                 # the whole history's is the fold's own
-                    r = self._total(blocks[:i], False, memory)
-                    (G, b), n = self._global(r), r.n
-                sse += self._sse(test, self._solve(G, b, m, n))
-            return float(np.mean(sse / scale))
-
-        recent = [score(k) for k in range(len(HALF_LIVES_S))]
+        recent = [self._score(best, folds, at, scale, k) for k in range(len(HALF_LIVES_S))]
         k = int(np.argmin(recent))
-        # the couplings of a persistent column follow the air's density (+3 % over an approach)
-        coupled = self.coupling is not None and self.coupling.serving(CONFIRM_S) is not None
-        margin = 0.0 if coupled else RECENT_MARGIN
-        return k if recent[k] < (1.0 - margin) * score(-1) else -1
+        margin = 0.0 if self._coupled() else RECENT_MARGIN
+        return k if recent[k] < (1.0 - margin) * self._score(best, folds, at, scale, -1) else -1
+
+    def _coupled(self) -> bool:
+        """Tell whether a persistent column's couplings serve (``coupling_track``)."""
+        return self.coupling is not None and self.coupling.serving(CONFIRM_S) is not None
 
     def _choose(self, scores: dict) -> tuple:
         """

@@ -313,6 +313,10 @@ class WindowCholesky:
         """``K^-1 r = L^-T z``, (n,)."""
         return self.solve(self._z, trans=True)
 
+    def retarget(self, r: np.ndarray) -> None:
+        """Carry another right-hand side ``r`` (n,): ``z = L^-1 r`` (one triangular solve)."""
+        self._z = self.solve(np.asarray(r, dtype=float).reshape(self._n))
+
     # ------------------------------------------------------------------ updates
     def append(self, c: np.ndarray, d: float, floor: float, r_new: float) -> None:
         """

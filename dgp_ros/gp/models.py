@@ -292,6 +292,19 @@ class _DGP(Fitted):
         self.policy_.after_update(p, Q)
         return self
 
+    def remean(self, mean) -> '_DGP':
+        """
+        Take another prior mean (a ``PriorMean``) without a refit: O(n^2) per output.
+
+        Kernel, standardization and data stay; the weights become the posterior's with that
+        mean (``Posterior.remean``). A structural certificate becomes stale, as after
+        ``update``. Returns self.
+        """
+        p = self._check_fitted()
+        p.remean(mean)
+        self.policy_.after_update(p, np.zeros((0, p.N)))
+        return self
+
     # ------------------------------------------------------------------ prediction
     def predict(self, Qs, return_var: bool = False, q=None):
         """

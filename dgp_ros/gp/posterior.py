@@ -345,6 +345,25 @@ class Posterior:
         self.alpha = np.column_stack([f.alpha() for f in self.factors])
         self.set_delta(self.delta)
 
+    def remean(self, mean: PriorMean) -> None:
+        """
+        Take another prior mean in place, the data and the factorization kept: O(n^2) an output.
+
+        The residuals become ``(Tau - mean(Qd)) / sy`` and the weights follow by one triangular
+        solve per output (``WindowCholesky.retarget``): the posterior the same kernel gives
+        with that mean. What a prior that follows every sample (``gp.coupled``, refitted by the
+        online learner) costs the model, instead of a refit.
+        """
+        if not self.live:
+            raise RuntimeError("a model snapshot is predict-only: remean the learner's model")
+        Q = self.Qd
+        self.R = self.R + (self.mean(Q) - mean(Q)) / self.hyper.sy
+        for m, f in enumerate(self.factors):
+            f.retarget(self.R[:, m])
+        self.mean = mean
+        self.alpha = np.column_stack([f.alpha() for f in self.factors])
+        self.set_delta(self.delta)
+
     # ------------------------------------------------------------------ prediction
     def element_kernels(self, Q: np.ndarray) -> Optional[np.ndarray]:
         """

@@ -85,6 +85,12 @@ class Served:
         self._model = model
         self._version += 1
 
+    def remean(self, mean) -> None:
+        """Serve the model with the prior ``mean`` instead (``model.remean``: no refit)."""
+        if self._model is not None:
+            self._model.remean(mean)
+            self._version += 1
+
     def catch_up(self, window, health, rebase_after: int) -> int:
         """
         Append every learned sample of ``window`` the model does not hold yet; returns how many.

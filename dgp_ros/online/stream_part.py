@@ -13,7 +13,7 @@ This part is learned where every accepted message passes, at every message, in m
 * **recursive least squares** of each output on the persistent column's features (shared by
   every output: one Gram matrix), with forgetting (a sample's weight halves after
   :data:`HALF_LIFE_S` of stamp time: the air's density grows by 3 % over an approach) and the
-  long history's ridge (``dynamics.coupling_track.COUPLING_RIDGE``), solved every
+  a small ridge (:data:`STREAM_RIDGE`), solved every
   :data:`SOLVE_EVERY_S` of stamps;
 * **its one-step skill beside the model's**: every message is answered by both before either
   learns it; the exponentially weighted squared errors over :data:`SKILL_HALF_LIFE_S` give the
@@ -36,7 +36,7 @@ from typing import Optional
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
-from dgp_ros.dynamics.coupling_track import COUPLING_RIDGE, CouplingTrack
+from dgp_ros.dynamics.coupling_track import CouplingTrack
 from dgp_ros.gp.policy import project_passive, projection_lambda
 
 __all__ = ['StreamPart', 'HALF_LIFE_S', 'SKILL_HALF_LIFE_S', 'SOLVE_EVERY_S']
@@ -49,6 +49,9 @@ SKILL_HALF_LIFE_S = 0.5
 SKILL_HALF_LIFE_SAMPLES = 10
 #: the weights are solved for at most this often (stamp time, s)
 SOLVE_EVERY_S = 0.005
+#: the ridge: this many samples' worth of each feature's mean square (not the constant's); a
+#: part solved at every message extrapolates one message ahead: little ridge serves it
+STREAM_RIDGE = 0.01
 #: the last word (``verdict``): the published answers against the part alone over this
 #: half-life of stamp time (s); worse by more than this fraction is said
 VERDICT_HALF_LIFE_S = 5.0
@@ -233,7 +236,7 @@ class StreamPart:
         sl = slice(c * size, (c + 1) * size)
         G = self.G[sl, sl].copy()
         d = np.diag(G).copy()
-        ridge = COUPLING_RIDGE * d / max(self.n, 1.0)
+        ridge = STREAM_RIDGE * d / max(self.n, 1.0)
         ridge[0] = 0.0                      # the constant feature: none
         G[np.diag_indices_from(G)] += ridge + 1e-9 * d + 1e-300
         try:

@@ -160,3 +160,24 @@ def test_paper_mode_refuses_a_coupled_prior():
     m = _mean()
     with pytest.raises(ValueError, match='diagonal'):
         make_model('full', prior=m, bias=False, passivity='paper').fit(Q, T)
+
+
+def test_remean_equals_a_fit_with_the_new_prior_at_the_same_kernel():
+    fitted, Q, T = _fitted_model()
+    # projected answers: a certified model's blend outside its domain belongs to its proof
+    model = make_model('full', prior=fitted.mean_, bias=False, passivity='projected',
+                       hyperparams=fitted.hyperparams_).fit(Q, T, optimize=False)
+    other = CoupledMean(model.mean_.base, model.mean_.basis, model.mean_.W * 1.05)
+    hp = dict(model.hyperparams_, mean=other.to_dict())
+    ref = make_model('full', prior=other, bias=False, passivity='projected',
+                     hyperparams=hp).fit(Q, T, optimize=False)
+    model.remean(other)
+    assert fitted.remean(other).certificate().stale     # a domain proof must be made again
+    Qt = _velocities(np.random.default_rng(10), 400, 1.0)
+    a, va = model.predict(Qt, return_var=True)
+    b, vb = ref.predict(Qt, return_var=True)
+    scale = np.abs(b).max()
+    assert np.allclose(a, b, rtol=1e-8, atol=1e-8 * scale)
+    assert np.allclose(va, vb, rtol=1e-8, atol=1e-12 * scale ** 2)
+    # the training data are the same data: the forces come back through the new prior
+    assert np.allclose(model.Y_train_, T, rtol=1e-9, atol=1e-9 * np.abs(T).max())
