@@ -18,7 +18,7 @@ least-squares fits), the refits, and every distinct /diagnostics message the dem
 (the status under load must say so, with the reason). ``--quick``: one A320 run each way at
 half the flight. Writes section ``busy`` of docs/BENCHMARKS.md (``--out``).
 
-Usage: bench/busy.py [--quick] [--runs K] [--load P] [--fast F] [--out DIR]
+Usage: bench/busy.py [--quick] [--runs K] [--load P] [--fast F] [--fast-runs K] [--out DIR]
 """
 from __future__ import annotations
 
@@ -125,6 +125,8 @@ def main(argv=None) -> int:
         p.add_argument('--load', type=int, default=2, help='busy processes')
         p.add_argument('--fast', type=float, default=4.0, help='real-time factor of the fast '
                        'runs (0: none)')
+        p.add_argument('--fast-runs', type=int, default=None,
+                       help='runs at --fast times real time (default: --runs)')
         p.add_argument('--no-robot', action='store_true', help='skip the robot demo')
     a = C.parse_args(__doc__.strip().split('\n')[0], argv, extra)
     runs = 1 if a.quick else a.runs
@@ -141,7 +143,7 @@ def main(argv=None) -> int:
                 run('a320', f'A320 {"beside the load" if loaded else "quiet"} {k + 1}', flight,
                     loaded)
         if a.fast and not a.quick:
-            for k in range(runs):
+            for k in range(runs if a.fast_runs is None else a.fast_runs):
                 run('a320', f'A320 at {a.fast:g}x real time beside the load {k + 1}',
                     ['--real-time-factor', str(a.fast)], True)
         if not a.no_robot and not a.quick:

@@ -65,6 +65,7 @@ class CouplingTrack:
         self.cols: List[int] = list(range(self.N))
         self.vref = np.ones(self.N)
         self.basis: Optional[CouplingBasis] = None
+        self._fitted: Optional[tuple] = None       # (key, basis) of the last fitted_basis
         self.K = len(self.cols) * CouplingBasis.features_per_column(self.N)
 
     def observe(self, V: np.ndarray, stamp: Optional[float] = None) -> List[int]:
@@ -137,10 +138,16 @@ class CouplingTrack:
 
         c : the serving column's index among ``cols`` (its features alone), None: all of them.
         """
+        key = (c, tuple(self.cols), self.lo.tobytes(), self.hi.tobytes())
+        if self._fitted is not None and self._fitted[0] == key:
+            return self._fitted[1]          # immutable: shared by the fits until the box grows
         if c is None:
-            return self.basis_now().boxed(self.lo, self.hi)
-        p = self.cols[c]
-        return CouplingBasis(self.N, [p], [self.vref[p]]).boxed(self.lo, self.hi)
+            basis = self.basis_now().boxed(self.lo, self.hi)
+        else:
+            p = self.cols[c]
+            basis = CouplingBasis(self.N, [p], [self.vref[p]]).boxed(self.lo, self.hi)
+        self._fitted = (key, basis)
+        return basis
 
     def columns(self, V: np.ndarray) -> np.ndarray:
         """Return the coupling columns of velocities V (k, N), shared by the outputs: (k, K)."""
