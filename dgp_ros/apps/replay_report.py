@@ -40,7 +40,7 @@ __all__ = ['arrays_of', 'CsvWriter', 'CSV_FIXED', 'elements_report', 'make_plots
 
 
 def _after_nmse(after, y) -> float:
-    """The NMSE of the sampled tracking estimates ``after`` (NaN where not sampled)."""
+    """Return the NMSE of the sampled tracking estimates ``after`` (NaN: not sampled)."""
     fin = np.isfinite(after)
     return _nmse(after[fin] - y[fin], y[fin])[0] if fin.any() else float('nan')
 

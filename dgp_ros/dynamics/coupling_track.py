@@ -33,11 +33,11 @@ CONFIRM_S = 2.0
 #: the couplings' ridge in the long history: this many samples' worth of each feature's mean
 #: square (the constant one has none: the first sample alone answers its own force), chosen
 #: at each selection among ``COUPLING_RIDGES`` by the CV blocks, ``COUPLING_RIDGE`` before.
-#: Fixed, none was right everywhere: 1e-6 let the first samples of an approach (3 samples, 12 features,
-#: beta within 1e-3 rad) answer -1.3e8 N of drag for 9e4; 1.0 biased a noise-free polynomial of
-#: 30 s to 3e-3 of the lift's variance held out (0.01: 4e-7); 0.01 took the default flight's
-#: drag to 2.3e-3 one step ahead where 0.3 gave 2.8e-4 (the seed-20241 family passed 24 of 24
-#: with each of 0.01, 0.3 and 1.0)
+#: Fixed, none was right everywhere: 1e-6 let the first samples of an approach (3 samples, 12
+#: features, beta within 1e-3 rad) answer -1.3e8 N of drag for 9e4; 1.0 biased a noise-free
+#: polynomial of 30 s to 3e-3 of the lift's variance held out (0.01: 4e-7); 0.01 took the
+#: default flight's drag to 2.3e-3 one step ahead where 0.3 gave 2.8e-4 (the seed-20241 family
+#: passed 24 of 24 with each of 0.01, 0.3 and 1.0)
 COUPLING_RIDGES = (0.01, 0.1, 1.0, 10.0)
 COUPLING_RIDGE = 1.0
 

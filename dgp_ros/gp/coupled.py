@@ -71,8 +71,8 @@ class CouplingBasis:
             raise ValueError(f'coupling basis: columns {self.cols} are not distinct in 0..{N - 1}')
         self.others = [[k for k in range(self.N) if k != p] for p in self.cols]
         #: per column the box of its other velocities (lo, hi), when clipped
-        self._clip = [] if self.box is None else [(self.box[0][o], self.box[1][o])
-                                                   for o in self.others]
+        self._clip = [] if self.box is None else \
+            [(self.box[0][o], self.box[1][o]) for o in self.others]
         self.sizes = [self.features_per_column(self.N)] * len(self.cols)
         self.K = int(sum(self.sizes))
 
