@@ -367,7 +367,7 @@ class LongHistory:
 
     def _score(self, best: tuple, folds: list, at: list, scale: np.ndarray, memory: int,
                ridge: Optional[float] = None) -> float:
-        """Return the CV score of ``best`` learned in ``memory`` (-1: all), couplings' ``ridge``."""
+        """Return the CV score of ``best`` learned in ``memory`` (-1: all), couplings' ridge."""
         m, blocks = self._mask(*best), list(self._blocks)
         sse = np.zeros(self.N)
         for ((G, b), n, test), i in zip(folds, at):
