@@ -55,6 +55,9 @@ REPO = os.path.dirname(HERE)
 #: simulated flights (about 1.4 s each to make again): out/ of the checkout
 CACHE = os.path.join(REPO, 'out', 'a320_family_cache')
 SEED_BASE = DEVELOPED_SEED = 20241
+#: the seed of the flights first flown to check the developed ones (their section
+#: ``a320_family_new_seeds``); any other seed gets a section of its own
+NEW_SEED = 777
 FLIGHTS = 24
 MAX_DRAWS = 30
 STALL_DEG = 15.0
@@ -367,7 +370,8 @@ def main(argv=None) -> int:
                        f'{"_seed%d" % SEED_BASE if new else ""}')
     write(out, {'tag': tag, 'dgp_ros': where, 'quick': a.quick, 'wall_s': wall, 'bars': BARS,
                 'results': results}, report(results, tag, where, a.quick, wall),
-          ('a320_family' + ('_new_seeds' if new else '')) if a.section else None, a.quick,
+          ('a320_family' + ('' if not new else '_new_seeds' if SEED_BASE == NEW_SEED
+                            else f'_seed_{SEED_BASE}')) if a.section else None, a.quick,
           wall, __file__)
     return 0
 

@@ -4,7 +4,7 @@ The ``certified`` passivity policy: a certificate of the published damping matri
 In order (docs/PASSIVITY.md):
 
 1. ``a-posteriori-bound`` (any N, global, PSD): with the weights known, ``|C_mn(q)| <= B_mn`` for
-   every q (``Posterior.l1_bound``); ``diag(m_inf) - B`` copositive proves that the symmetric
+   every q (``bounds.l1_bound``); ``diag(m_inf) - B`` copositive proves that the symmetric
    part of ``D(q)`` is PSD for every q in R^N. Nothing is changed.
 2. Up to ``JOINT_MAX_N`` velocities, ``domain-bnb+blend`` (passive on a domain): branch-and-bound
    (``verify.verify_box``) proves ``q^T D(q) q >= 0`` on an outer box ``Omega'`` around the data
@@ -32,6 +32,7 @@ from typing import Optional
 
 import numpy as np
 
+from .bounds import correction_terms, l1_bound
 from .copositive import norm_margin
 from .policy import Certificate, PassivityPolicy
 from .psd import psd_clip
@@ -169,7 +170,7 @@ class CertifiedPolicy(PassivityPolicy):
         """Certificate (1); True when it holds (then nothing is blended or clipped)."""
         if not post.mean.is_diagonal:
             return False            # the lemma needs a diagonal prior (``gp.coupled``: none)
-        m = norm_margin(post.mean.diag_inf(), self.scale * post.l1_bound(rkhs=rkhs))
+        m = norm_margin(post.mean.diag_inf(), self.scale * l1_bound(post, rkhs=rkhs))
         if m < 0:
             return False
         self.leaves, self.blend_on, self.clip = None, False, False
@@ -308,7 +309,7 @@ class CertifiedPolicy(PassivityPolicy):
         """
         (ilo, ihi), (olo, ohi) = dom
         # most fits are proven at once: try that (small budget) before building the probe
-        res = verify_box(post.correction_terms(self.scale), olo, ohi,
+        res = verify_box(correction_terms(post, self.scale), olo, ohi,
                          max_boxes=min(self.FIRST_BOXES, self.options.max_boxes), leaves=leaves)
         if res.ok:
             self._outer = (olo, ohi)
@@ -350,7 +351,7 @@ class CertifiedPolicy(PassivityPolicy):
                 delta, _ = repair(post, (cut_p0, cut_G), 0.05 * np.maximum(cut_p0, 0.0))
                 post.set_delta(delta if post.delta is None else post.delta + delta)
                 repairs += 1
-            res = verify_box(post.correction_terms(self.scale), olo, ohi,
+            res = verify_box(correction_terms(post, self.scale), olo, ohi,
                              max_boxes=self.options.max_boxes,
                              leaves=leaves if repairs == halvings == 0 else None)
             if res.ok or res.witness is None:

@@ -28,6 +28,7 @@ from typing import Optional
 
 import numpy as np
 
+from .bounds import l1_bound, paper_bound
 from .certified import CertifiedPolicy
 from .copositive import copositivity_margin, max_scale, norm_margin
 from .policy import (Certificate, passive_tolerance, PassivityPolicy, PolicyOptions,
@@ -54,7 +55,7 @@ class NonePolicy(PassivityPolicy):
             self.cert = Certificate(False, -np.inf, 'none', None, 1.0,
                                     {'note': 'the prior carries couplings: no global bound'})
             return post
-        m = norm_margin(post.mean.diag_inf(), post.l1_bound(rkhs=rkhs))
+        m = norm_margin(post.mean.diag_inf(), l1_bound(post, rkhs=rkhs))
         self.cert = Certificate(bool(m >= 0), float(m), 'a-posteriori-bound (not enforced)',
                                 guarantee='psd' if m >= 0 else 'none')
         return post
@@ -113,7 +114,7 @@ class PaperPolicy(PassivityPolicy):
                 changed = True
         if changed:
             post = post.with_kernel(hp)
-        g = max_scale(m_inf, post.paper_bound())
+        g = max_scale(m_inf, paper_bound(post))
         if g < 1.0:
             hp = post.hyper.copy()
             with np.errstate(divide='ignore'):
@@ -127,7 +128,7 @@ class PaperPolicy(PassivityPolicy):
 
     def _check(self, post, after_update):
         m_inf = post.mean.diag_inf()
-        B = post.paper_bound()
+        B = paper_bound(post)
         s = max_scale(m_inf, B, 1.0)
         self.scale = min(self.scale, s) if after_update else s
         margin = norm_margin(m_inf, self.scale * B)

@@ -30,7 +30,6 @@ from ._chol import (chol_jitter, cholesky_in_place, FrozenFactor, JITTER_STEPS,
                     WindowCholesky)
 from .kernels import lower_se_sum, se_ard, Structure
 from .means import PriorMean
-from .verify import CorrectionTerms
 
 __all__ = ['Hyper', 'Posterior', 'chol_jitter']
 
@@ -460,53 +459,3 @@ class Posterior:
             c = (ke @ (self.X[:, n] * self.weights[:, m])) * (hp.sy[m] / hp.sx[n])
             D[:, m, n] += c if weight is None else weight * c
         return D
-
-    # ------------------------------------------------------------------ certificates
-    def correction_terms(self, scale: float) -> CorrectionTerms:
-        """Return the correction in the form ``verify.verify_box`` proves (scaled by ``scale``)."""
-        s, hp = self.structure, self.hyper
-        coef = np.stack([self.X[:, n] * self.weights[:, m] * scale for m, n in s.elems])
-        sf2 = np.exp(hp.log_sf2)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            rk = np.where(sf2 > 0, np.sqrt(np.maximum(self.rkhs_sq(), 0.0) / sf2), 0.0)
-        return CorrectionTerms(self.X, list(s.elems), sf2, np.exp(hp.log_ls), coef, self.mean,
-                               hp.sx, hp.sy,
-                               lambda Q: self.damping(Q, np.full(Q.shape[0], scale)),
-                               rkhs=abs(scale) * rk)
-
-    def l1_bound(self, rkhs: bool = True) -> np.ndarray:
-        """
-        A-posteriori bound ``B_mn >= sup_q |C_mn(q)|`` (N, N), model units.
-
-        Per element the smaller of the L1 bound ``sf2 * sum_i |x_{n,i} alpha_{m,i}|`` and the
-        RKHS bound ``|g|_H sqrt(sf2)`` (reproducing property and Cauchy-Schwarz); both hold for
-        every q. ``rkhs=False``: the O(n) L1 form only (the per-update check).
-        """
-        s, hp = self.structure, self.hyper
-        B = np.zeros((s.N, s.N))
-        rk = self.rkhs_sq() if rkhs else None
-        for e, (m, n) in enumerate(s.elems):
-            sf2 = math.exp(hp.log_sf2[e])
-            if sf2 == 0.0:
-                continue
-            a = self.X[:, n] * self.weights[:, m]
-            b = sf2 * np.abs(a).sum()
-            if rkhs:
-                b = min(b, math.sqrt(max(float(rk[e]), 0.0) * sf2))
-            B[m, n] = b * hp.sy[m] / hp.sx[n]
-        return B
-
-    def paper_bound(self) -> np.ndarray:
-        """
-        Theorem 1 bound with the sf^2 kernel bound.
-
-        (N, N) model units: ``sf2_mn * sqrt(n) |x|_inf |dy_m| / s_eps^2``.
-        """
-        s, hp = self.structure, self.hyper
-        xinf = float(np.abs(self.X).max())
-        B = np.zeros((s.N, s.N))
-        for e, (m, nn) in enumerate(s.elems):
-            c = (math.sqrt(self.n) * xinf * np.linalg.norm(self.R[:, m])
-                 / math.exp(hp.log_sn2[m]))
-            B[m, nn] = math.exp(hp.log_sf2[e]) * c * hp.sy[m] / hp.sx[nn]
-        return B

@@ -17,7 +17,7 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from dgp_ros.dynamics import AccelFilter, FrictionResidual
+from dgp_ros.dynamics import AccelFilter, FrictionResidual, make_inverse_dynamics
 
 __all__ = ['Front']
 
@@ -35,6 +35,16 @@ class Front:
         self.residual = FrictionResidual(
             inverse, AccelFilter(config.accel_half_window_s) if inverse is not None else None)
         self._last_stamp: Optional[float] = None    # the last sample offered for learning
+        self._thin_i = 0                # samples given while thinning (``thin``)
+
+    @staticmethod
+    def inverse_dynamics(config):
+        """Build the rigid-body model of ``config`` (None: without one, or the URDF is awaited)."""
+        if config.awaits_urdf:
+            return None
+        return make_inverse_dynamics(config.inverse_dynamics,
+                                     robot_description=config.robot_description,
+                                     urdf_file=config.urdf_file, joints=config.joints)
 
     def rate_limited(self, config, stamp: float) -> bool:
         """Tell whether a sample at ``stamp`` comes too soon after the last one offered."""
@@ -70,3 +80,13 @@ class Front:
         take = [(r.stamp_s, r.qd, r.residual, r.q, r.qdd) for r in done
                 if np.all(np.isfinite(r.residual))]
         return want, done, take
+
+    def thin(self, take: List[tuple], k: int, health) -> List[tuple]:
+        """Keep one in ``k`` of the samples given, over the calls; count the rest as thinned."""
+        kept = []
+        for sample in take:
+            self._thin_i = (self._thin_i + 1) % k
+            if self._thin_i == 0:
+                kept.append(sample)
+        health.samples_thinned += len(take) - len(kept)
+        return kept

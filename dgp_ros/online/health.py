@@ -112,6 +112,7 @@ class LearnerHealth:
     proofs_failed: int = 0            # models served unproven (every answer projected)
     proofs_failed_in_a_row: int = 0   # re-proofs wait longer after each (Absorber._proof_gap)
     last_proof_error: str = ''
+    proven_at: Optional[float] = None     # learning time of the last model proven (s)
     consecutive_refit_failures: int = 0
     last_refit_error: str = ''
     last_refit_stamp: Optional[float] = None
@@ -130,13 +131,20 @@ class LearnerHealth:
     correction_basis: str = ''        # what the conservative correction is built from
     corrections_refused: int = 0      # corrections that would inflate the targets: not applied
 
-    def proof_done(self, why_not: str) -> None:
-        """Count a proof attempt of a served model: ``why_not`` '' when it holds."""
+    def proof_done(self, why_not: str, stamp: Optional[float] = None) -> None:
+        """
+        Count a proof attempt of a served model: ``why_not`` '' when it holds.
+
+        stamp : the learning time of the newest sample the proven model held (s): the status
+        says since when the served model was last proven.
+        """
         if why_not:
             self.proofs_failed += 1
             self.proofs_failed_in_a_row += 1
         else:
             self.proofs_failed_in_a_row = 0
+            if stamp is not None:
+                self.proven_at = float(stamp)
         self.last_proof_error = why_not
 
     def refit_done(self, ok: bool, seconds: float, stamp, optimized: bool, error: str,
@@ -181,7 +189,7 @@ class LearnerHealth:
             'recertifications': self.recertifications, 'appends': self.appends,
             'absorbs': self.absorbs, 'absorbs_rejected': self.absorbs_rejected,
             'last_absorb_error': self.last_absorb_error, 'proofs_failed': self.proofs_failed,
-            'last_proof_error': self.last_proof_error,
+            'last_proof_error': self.last_proof_error, 'proven_at_s': self.proven_at,
             'refit_durations': list(self.refit_durations),
             'recent_refits': len(self.recent_refits),
             'recent_refits_failed': self.recent_refits.count(False),
@@ -309,8 +317,14 @@ class Health:
         elif state.get('learning') == 'stopping':
             reasons.append('learning stopping: the model is being proven and saved')
         elif state['stale']:
-            reasons.append('certificate being re-proven after updates (estimates passive '
-                           'pointwise meanwhile)')
+            at = learner.get('proven_at_s')
+            reasons.append('every answer passive (each projected onto qd . tau >= 0); the model '
+                           + ('not proven yet' if at is None else
+                              f'last proven passive on the visited velocities at {at:.1f} s') +
+                           ', proven again after the new samples')
+        elif state['certifies'] and state['certified'] and learner.get('proven_at_s') is not None:
+            reasons.append('every answer passive; the model proven passive on the visited '
+                           f'velocities, as learned at {learner["proven_at_s"]:.1f} s')
         elif state['certifies'] and not state['certified']:
             why = learner.get('last_proof_error', '')
             reasons.append('not certified' + (f' ({why})' if why else '') +

@@ -371,7 +371,7 @@ class Refits:
                 return False, 'discarded: the estimator was reset'
             self._pending.clear()
             if ok and (job.kind == 'recertify' or job.full):      # a fit is proven after it
-                h.proof_done(proof)
+                h.proof_done(proof, job.stamp)
             if job.kind == 'recertify':
                 self._proof_done, self._proof_wall = time.monotonic(), dt
                 return self._recertified(job, model, ok, why, proof, dt)

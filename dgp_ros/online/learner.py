@@ -25,7 +25,6 @@ from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 
-from dgp_ros.dynamics import make_inverse_dynamics
 from dgp_ros.gp import load_model, make_model
 
 from .absorb import Rebases
@@ -76,9 +75,8 @@ class Learner:
         self._factory = model_factory or make_model
         self._loader = model_loader or load_model
         self._lock = threading.RLock()
-        self._thin_i = 0                # samples given while thinning (``learn``'s ``thin``)
         self.load_error = ''
-        self._inverse = _inverse_dynamics(self.config)
+        self._inverse = Front.inverse_dynamics(self.config)
         self._names_hint: Optional[List[str]] = None
         self.health = LearnerHealth()
         self.refits = None
@@ -279,13 +277,7 @@ class Learner:
         """Offer the sample for learning (``front``); learn what it gives; (taken, residuals)."""
         want, done, take = self.front.offer(self.config, self.health, stamp, qd, tau, q)
         if thin > 1 and take:
-            kept = []
-            for sample in take:
-                self._thin_i = (self._thin_i + 1) % thin
-                if self._thin_i == 0:
-                    kept.append(sample)
-            self.health.samples_thinned += len(take) - len(kept)
-            take = kept
+            take = self.front.thin(take, thin, self.health)
             if not take:
                 return False, done
         if self._inverse is None:
@@ -410,7 +402,7 @@ class Learner:
         if self._N is not None:
             config.check_dimension(self._N)
         if any(getattr(self.config, f) != getattr(config, f) for f in FRONT_END):
-            _inverse_dynamics(config)
+            Front.inverse_dynamics(config)
 
     def reconfigure(self, config: EstimatorConfig) -> str:
         """
@@ -440,7 +432,7 @@ class Learner:
         old = self.config
         inverse = self._inverse
         if any(getattr(old, f) != getattr(config, f) for f in FRONT_END):
-            inverse = _inverse_dynamics(config)     # ValueError before anything changes
+            inverse = Front.inverse_dynamics(config)     # ValueError before anything changes
         with self._lock:
             self.config = config
             self._inverse = inverse
@@ -496,12 +488,3 @@ class Learner:
         # a model file answers with the gains it was saved with (a file without them, at full
         # weight: the user gave it); one-step scores then move them as a learned model's
         self.restore_gains(*Grounds.record_gains(g, model.X_train_.shape[1]))
-
-
-def _inverse_dynamics(config: EstimatorConfig):
-    """Build the rigid-body model of ``config`` (None: without one, or the URDF is awaited)."""
-    if config.awaits_urdf:
-        return None
-    return make_inverse_dynamics(config.inverse_dynamics,
-                                 robot_description=config.robot_description,
-                                 urdf_file=config.urdf_file, joints=config.joints)
