@@ -97,3 +97,24 @@ def test_a_reversing_system_silences_the_part_within_its_first_swing():
         assert est.stream.weigh(Qr, tau, None)[0] is tau       # the model's answers alone
     finally:
         est.close()
+
+
+def test_the_forgetting_keeps_a_slow_stream_s_samples():
+    # a half-life of HALF_LIFE_S at 60 Hz, of HALF_LIFE_SAMPLES messages at 5 Hz: a slow stream
+    # keeps enough samples for the features, and still learns the aircraft
+    from dgp_ros.online import stream_part as sp
+    for rate, half_life in ((60.0, sp.HALF_LIFE_S), (5.0, sp.HALF_LIFE_SAMPLES / 5.0)):
+        part = StreamPart(3)
+        t = np.arange(0.0, 120.0, 1.0 / rate)
+        Q, T = aircraft(t)
+        errs = []
+        for i in range(len(t)):
+            mine = part.answer(Q[i:i + 1])
+            if mine is not None and t[i] > 60.0:
+                errs.append((mine[0][0] - T[i]) ** 2)
+            part.learn(t[i:i + 1], Q[i:i + 1], T[i:i + 1], np.zeros((1, 3)),
+                       None if mine is None else mine[0])
+        assert abs(part._half_life(t[-1:] + 1.0 / rate) - half_life) < 1e-6 * half_life
+        # the effective samples: a geometric sum over the half-life's messages
+        assert abs(part.n - rate * half_life / np.log(2.0)) < 0.05 * part.n, part.n
+        assert np.all(np.mean(errs, axis=0) / T.var(axis=0) < 1e-3)
