@@ -37,7 +37,7 @@ NAME = 'aircraft_cost'
 
 def _flight(quick: bool):
     from sim_bridge import SimConfig, simulate_approach
-    fl = simulate_approach(SimConfig(max_sim_time_s=25.0) if quick else SimConfig())
+    fl = simulate_approach(SimConfig(max_time_s=25.0) if quick else SimConfig())
     return fl['t'], fl['q'], fl['tau'], list(fl['joint_names'])
 
 

@@ -306,3 +306,18 @@ def test_learning_curve_quick(tmp_path):
         model, worst, ls = numbers(r[3])[0], numbers(r[4])[0], numbers(r[5])[0]
         # learned something: well below answering the mean (1), and the worst joint above the mean
         assert 0 < model <= worst < 0.5 and 0 < ls < 1, r
+
+
+@pytest.mark.slow
+def test_aircraft_cost_quick(tmp_path):
+    run('aircraft_cost.py', tmp_path)
+    s = section(tmp_path, 'aircraft_cost')
+    assert 'couplings through airspeed' in s, s
+    rows = [[c.strip() for c in line.strip('|').split('|')] for line in s.splitlines()
+            if line.startswith('| ') and line.split('|')[1].strip().startswith(
+                ('stream part', 'the gate', 'the learner', 'bare Cholesky'))]
+    assert len(rows) == 4, s
+    for r in rows:
+        assert 0 < numbers(r[1])[0] < 1e6, r           # a median in microseconds, finite
+    # the replay ran to its end and said how fast
+    assert re.search(r'median \*\*[0-9.]+x real time\*\* \(exit codes \[0\]', s), s
