@@ -319,9 +319,9 @@ class Health:
         elif state['stale']:
             at = learner.get('proven_at_s')
             reasons.append('every answer passive (each projected onto qd . tau >= 0); the model '
-                           + ('not proven yet' if at is None else
-                              f'last proven passive on the visited velocities at {at:.1f} s') +
-                           ', proven again after the new samples')
+                           + ('not proven passive yet' if at is None else
+                              f'last proven passive on the visited velocities as learned at '
+                              f'{at:.1f} s, the samples since not yet'))
         elif state['certifies'] and state['certified'] and learner.get('proven_at_s') is not None:
             reasons.append('every answer passive; the model proven passive on the visited '
                            f'velocities, as learned at {learner["proven_at_s"]:.1f} s')

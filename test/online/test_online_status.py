@@ -35,6 +35,19 @@ def test_samples_a_learner_dropped_since_the_last_report_are_a_warning():
     assert h.status({'samples_dropped': 40}, STATE)[0] == OK    # none new since
 
 
+def test_the_status_says_since_when_the_model_is_proven():
+    h = Health()
+    stale = dict(STATE, stale=True)
+    level, msg = h.status({'proven_at_s': None}, stale)
+    assert level == OK and 'every answer passive' in msg and 'not proven passive yet' in msg, msg
+    level, msg = h.status({'proven_at_s': 25.18}, stale)
+    assert level == OK and 'last proven passive on the visited velocities as learned at ' \
+        '25.2 s, the samples since not yet' in msg, msg
+    level, msg = h.status({'proven_at_s': 40.0}, STATE)
+    assert 'proven passive on the visited velocities, as learned at 40.0 s' in msg, msg
+    assert 'internal' not in msg and 'stale' not in msg
+
+
 def _arm(rate_hz, seconds=8.0):
     d = simulate_arm('panda', duration_s=seconds, seed=1)
     keep = np.flatnonzero(np.diff(np.floor(d['t'] * rate_hz), prepend=-1.0) > 0)
