@@ -81,12 +81,16 @@ class Front:
                 if np.all(np.isfinite(r.residual))]
         return want, done, take
 
-    def thin(self, take: List[tuple], k: int, health) -> List[tuple]:
-        """Keep one in ``k`` of the samples given, over the calls; count the rest as thinned."""
-        kept = []
+    def thin(self, take: List[tuple], k: int, health) -> Tuple[List[tuple], List[tuple]]:
+        """
+        Keep one in ``k`` of the samples given, over the calls; count the rest as thinned.
+
+        Returns (kept, thinned): a thinned sample may still feed what costs little per sample
+        (``Learner._learn``: the long history of a system without a rigid-body model).
+        """
+        kept, thinned = [], []
         for sample in take:
             self._thin_i = (self._thin_i + 1) % k
-            if self._thin_i == 0:
-                kept.append(sample)
-        health.samples_thinned += len(take) - len(kept)
-        return kept
+            (kept if self._thin_i == 0 else thinned).append(sample)
+        health.samples_thinned += len(thinned)
+        return kept, thinned

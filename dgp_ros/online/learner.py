@@ -277,7 +277,10 @@ class Learner:
         """Offer the sample for learning (``front``); learn what it gives; (taken, residuals)."""
         want, done, take = self.front.offer(self.config, self.health, stamp, qd, tau, q)
         if thin > 1 and take:
-            take = self.front.thin(take, thin, self.health)
+            take, thinned = self.front.thin(take, thin, self.health)
+            if self._inverse is None and self.config.learning:
+                self.structure.push_thinned(thinned, self.window, self.config, self._N,
+                                            self.structure_names())
             if not take:
                 return False, done
         if self._inverse is None:

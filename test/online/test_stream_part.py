@@ -118,3 +118,24 @@ def test_the_forgetting_keeps_a_slow_stream_s_samples():
         # the effective samples: a geometric sum over the half-life's messages
         assert abs(part.n - rate * half_life / np.log(2.0)) < 0.05 * part.n, part.n
         assert np.all(np.mean(errs, axis=0) / T.var(axis=0) < 1e-3)
+
+
+def test_a_thinning_learner_still_feeds_every_sample_to_the_long_history():
+    # a learner behind its stream learns one sample in k into its window, and every one into
+    # the long history whose couplings the saved prior carries (Structure.push_thinned)
+    from dgp_ros.online.learner import Learner
+    t = np.arange(0.0, 20.0, 1.0 / 60.0)
+    Q, T = aircraft(t)
+    learner = Learner(EstimatorConfig(refit_mode='sync'))
+    learner.set_joint_names(NAMES)
+    try:
+        for i in range(len(t)):
+            learner.learn(float(t[i]), Q[i], T[i], None, thin=8)
+        h = learner.health
+        assert h.samples_thinned >= 0.8 * len(t)
+        assert h.samples_added <= len(t) / 8 + 1
+        # every sample but the window's outliers reached the history
+        assert learner.structure.history_samples >= len(t) - h.samples_outliers - 1
+        assert 'couplings through airspeed' in learner.status()['structure']
+    finally:
+        learner.close()
