@@ -1,4 +1,4 @@
-"""dgp_ros.cdr: the JointState codec of the node's raw path, against rclpy's own serialization."""
+"""dgp_ros.msgs.cdr: the JointState codec of the node's raw path, against rclpy's serialization."""
 import math
 import random
 import struct
@@ -6,8 +6,8 @@ import struct
 import numpy as np
 import pytest
 
-from dgp_ros.cdr import (encode_float64, encode_names, JointStateReader, JointStateWriter,
-                         parse_joint_state)
+from dgp_ros.msgs.cdr import (encode_float64, encode_names, JointStateReader, JointStateWriter,
+                              parse_joint_state)
 
 serialization = pytest.importorskip('rclpy.serialization')
 JointState = pytest.importorskip('sensor_msgs.msg').JointState

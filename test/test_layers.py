@@ -6,7 +6,7 @@ resolved, imports inside functions included; an ``importlib`` call by a name com
 time is not an import and is not seen):
 
 * the layers below the nodes import no ROS: no module of ``dgp_ros/gp``, ``dynamics``,
-  ``online`` or ``bags`` (nor ``messages.py``, ``cdr.py``) imports rclpy or a ROS interface
+  ``online`` or ``bags`` (nor ``msgs``) imports rclpy or a ROS interface
   package (``rosidl*``, ``*_msgs``, ``*_srvs``, ...), except ``bags/ros.py`` and
   ``bags/cli.py`` (the rclpy player and recorder, and their command line);
 * the GP numerics stand alone: ``dgp_ros/gp`` imports nothing from the rest of the package;
@@ -24,7 +24,7 @@ PACKAGES = ('dgp_ros', 'sim_bridge')
 #: the layers that must import no ROS (folders, or single modules: the message converter and
 #: the CDR codec under the nodes), and the modules of them that may (rclpy on purpose)
 NO_ROS = ('dgp_ros/gp', 'dgp_ros/dynamics', 'dgp_ros/online', 'dgp_ros/bags',
-          'dgp_ros/messages.py', 'dgp_ros/cdr.py')
+          'dgp_ros/msgs')
 ROS_ALLOWED = ('dgp_ros/bags/ros.py', 'dgp_ros/bags/cli.py')
 #: ROS packages by exact top-level name; and by prefix or suffix of it
 ROS_NAMES = ('rclpy', 'launch_ros', 'ament_index_python', 'message_filters', 'tf2_ros')

@@ -1,4 +1,4 @@
-"""dgp_ros.messages: one JointState converter for rclpy and rosbags messages, bit for bit."""
+"""dgp_ros.msgs.sample: one JointState converter for rclpy and rosbags messages, bit for bit."""
 import array
 import math
 import types
@@ -6,7 +6,7 @@ import types
 import numpy as np
 import pytest
 
-from dgp_ros.messages import joint_state_sample, JointStateSample, stamp_seconds
+from dgp_ros.msgs.sample import joint_state_sample, JointStateSample, stamp_seconds
 
 STAMPS = [(0, 0), (1, 1), (100, 999_999_999), (1_700_000_000, 123_456_789), (2**31 - 1, 5)]
 

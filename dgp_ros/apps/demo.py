@@ -35,7 +35,7 @@ from dgp_ros.apps.demo_report import (analyse, certified_share, held_out, OUT_NA
                                       print_summary)
 from dgp_ros.gp import KINDS, PASSIVITY_MODES
 from dgp_ros.gp.passivity import describe_modes
-from dgp_ros.messages import joint_state_sample
+from dgp_ros.msgs.sample import joint_state_sample
 
 
 class _Recorder:

@@ -3,7 +3,7 @@
 
 :func:`iter_joint_states` is how ``dgp-replay`` reads a bag: every message of one JointState
 topic, deserialized with the Jazzy typestore and converted by
-:func:`dgp_ros.messages.joint_state_sample` (the estimator node's converter, so both compute the
+:func:`dgp_ros.msgs.sample.joint_state_sample` (the estimator node's converter, so both compute the
 same stamps and arrays). :func:`write_joint_state_bag` writes such a bag, for tests and
 simulated data.
 """
@@ -17,7 +17,7 @@ from typing import Iterable, Iterator, Optional, Sequence, Union
 import numpy as np
 
 from dgp_ros.bags.io import (_one_line, BagError, iter_bag, open_bag, storage_plugin, typestore)
-from dgp_ros.messages import joint_state_sample, JointStateSample
+from dgp_ros.msgs.sample import joint_state_sample, JointStateSample
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 
@@ -118,7 +118,7 @@ def write_joint_state_bag(path, samples: Iterable, topic: Union[str, Sequence[st
     path : str or Path
         Bag directory to create (must not exist).
     samples : iterable
-        :class:`~dgp_ros.messages.JointStateSample` or tuples
+        :class:`~dgp_ros.msgs.sample.JointStateSample` or tuples
         ``(stamp_s, names, position, velocity, effort)``: stamp in s (>= 0), arrays of
         shape (k,) (``position`` may be empty).
     topic : str or sequence of str

@@ -18,8 +18,8 @@ import numpy as np
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from dgp_ros.cdr import header_bytes, JointStateReader, parse_header
-from dgp_ros.messages import joint_state_sample
+from dgp_ros.msgs.cdr import header_bytes, JointStateReader, parse_header
+from dgp_ros.msgs.sample import joint_state_sample
 from dgp_ros.nodes.outputs import (damping_matrix_msg, joint_state, JointOutput, power_messages,
                                    publish_raw, subscribers, Writers)
 from dgp_ros.online.batch import answers_of

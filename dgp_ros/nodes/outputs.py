@@ -17,7 +17,7 @@ import numpy as np
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from dgp_ros.cdr import encode_float64, JointStateWriter
+from dgp_ros.msgs.cdr import encode_float64, JointStateWriter
 
 __all__ = ['damping_matrix_msg', 'joint_state', 'JointOutput', 'publish_raw', 'power_messages',
            'subscribers', 'Writers']

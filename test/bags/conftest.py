@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dgp_ros.bags import write_joint_state_bag
-from dgp_ros.messages import JointStateSample
+from dgp_ros.msgs.sample import JointStateSample
 
 SETUP_PY = Path(__file__).resolve().parents[2] / 'setup.py'
 

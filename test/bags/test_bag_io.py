@@ -18,7 +18,7 @@ from dgp_ros import bags
 from dgp_ros.bags import (bag_summary, BagError, BagWriter, check_message_type, iter_bag,
                           iter_joint_states, joint_state_topic, message_definition, normalize_type,
                           open_bag, playable_topics, typestore, write_joint_state_bag)
-from dgp_ros.messages import JointStateSample
+from dgp_ros.msgs.sample import JointStateSample
 
 JS = 'sensor_msgs/msg/JointState'
 PKG = Path(bags.__file__).resolve().parents[1]
@@ -26,8 +26,8 @@ PKG = Path(bags.__file__).resolve().parents[1]
 
 # ------------------------------------------------------------------------- no rclpy, ever
 @pytest.mark.parametrize('module', ['dgp_ros.bags', 'dgp_ros.bags.io', 'dgp_ros.bags.joint_states',
-                                    'dgp_ros.messages', 'dgp_ros.bags.cli', 'dgp_ros.apps.replay',
-                                    'dgp_ros.replay'])
+                                    'dgp_ros.msgs', 'dgp_ros.msgs.sample', 'dgp_ros.msgs.cdr',
+                                    'dgp_ros.bags.cli', 'dgp_ros.apps.replay', 'dgp_ros.replay'])
 def test_import_does_not_load_rclpy(module):
     code = (f'import sys, {module}\n'
             "bad = sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy')\n"
@@ -37,7 +37,8 @@ def test_import_does_not_load_rclpy(module):
 
 
 @pytest.mark.parametrize('path', [PKG / 'bags' / 'io.py', PKG / 'bags' / 'joint_states.py',
-                                  PKG / 'messages.py'])
+                                  PKG / 'msgs' / 'sample.py', PKG / 'msgs' / 'cdr.py',
+                                  PKG / 'msgs' / '__init__.py'])
 def test_pure_modules_have_no_rclpy_import_even_lazily(path):
     tree = ast.parse(path.read_text())
     names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
