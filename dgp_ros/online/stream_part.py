@@ -199,15 +199,19 @@ class StreamPart:
         return np.clip(1.0 - r, 0.0, 1.0)
 
     # ------------------------------------------------------------------ learning
-    def _half_life(self, stamps: np.ndarray) -> float:
+    @property
+    def half_life_s(self) -> float:
         """Return the forgetting's half-life (s): HALF_LIFE_S, or HALF_LIFE_SAMPLES intervals."""
+        return HALF_LIFE_S if self._dt is None else max(HALF_LIFE_S,
+                                                        HALF_LIFE_SAMPLES * self._dt)
+
+    def _note_interval(self, stamps: np.ndarray) -> None:
+        """Smooth the stream's interval with the median of the new stamps' (k,) intervals."""
         d = np.diff(stamps if self._t is None else np.concatenate(([self._t], stamps)))
         d = d[d > 0]
         if d.size:
             m = float(np.median(d))
             self._dt = m if self._dt is None else 0.9 * self._dt + 0.1 * m
-        return HALF_LIFE_S if self._dt is None else max(HALF_LIFE_S,
-                                                        HALF_LIFE_SAMPLES * self._dt)
 
     def learn(self, stamps: np.ndarray, Q: np.ndarray, T: np.ndarray,
               model: np.ndarray, part: Optional[np.ndarray],
@@ -235,7 +239,8 @@ class StreamPart:
         if not self.track.cols:
             return
         t_last = float(stamps[-1])
-        hl = self._half_life(stamps)
+        self._note_interval(stamps)
+        hl = self.half_life_s
         age = np.maximum(t_last - stamps, 0.0)
         w = 0.5 ** (age / hl)
         if self._t is not None:

@@ -13,19 +13,31 @@ from test_coupled import aircraft  # noqa: E402,I100,I201
 NAMES = ['alpha', 'beta', 'airspeed']
 
 
+def _one_step(part, t, Q, T, after):
+    """
+    Stream t (k,), Q and T (k, N) through ``part`` beside a model that answers zero.
+
+    Returns the part's answers one step ahead after ``after`` s: (index, (tau, D)) each.
+    """
+    answers = []
+    for i in range(len(t)):
+        mine = part.answer(Q[i:i + 1])
+        if mine is not None and t[i] > after:
+            answers.append((i, mine))
+        part.learn(t[i:i + 1], Q[i:i + 1], T[i:i + 1], np.zeros((1, 3)),
+                   None if mine is None else mine[0])
+    return answers
+
+
 def test_the_part_learns_an_aircraft_from_every_sample_and_answers_passively():
     part = StreamPart(3)
     t = np.arange(0.0, 20.0, 1.0 / 60.0)
     Q, T = aircraft(t)
-    errs = []
-    for i in range(len(t)):
-        mine = part.answer(Q[i:i + 1])
-        if mine is not None and t[i] > 1.0:
-            errs.append((mine[0][0] - T[i]) ** 2)
-            assert np.allclose(np.einsum('kij,kj->ki', mine[1], Q[i:i + 1]), mine[0])
-        # a model that answers nothing: the part's share grows toward 1
-        part.learn(t[i:i + 1], Q[i:i + 1], T[i:i + 1], np.zeros((1, 3)),
-                   None if mine is None else mine[0])
+    # a model that answers nothing: the part's share grows toward 1
+    answers = _one_step(part, t, Q, T, after=1.0)
+    for i, mine in answers:
+        assert np.allclose(np.einsum('kij,kj->ki', mine[1], Q[i:i + 1]), mine[0])
+    errs = [(mine[0][0] - T[i]) ** 2 for i, mine in answers]
     nmse = np.mean(errs, axis=0) / T.var(axis=0)
     assert np.all(nmse < 1e-4), nmse
     assert part.share() > 0.99
@@ -107,14 +119,8 @@ def test_the_forgetting_keeps_a_slow_stream_s_samples():
         part = StreamPart(3)
         t = np.arange(0.0, 120.0, 1.0 / rate)
         Q, T = aircraft(t)
-        errs = []
-        for i in range(len(t)):
-            mine = part.answer(Q[i:i + 1])
-            if mine is not None and t[i] > 60.0:
-                errs.append((mine[0][0] - T[i]) ** 2)
-            part.learn(t[i:i + 1], Q[i:i + 1], T[i:i + 1], np.zeros((1, 3)),
-                       None if mine is None else mine[0])
-        assert abs(part._half_life(t[-1:] + 1.0 / rate) - half_life) < 1e-6 * half_life
+        errs = [(mine[0][0] - T[i]) ** 2 for i, mine in _one_step(part, t, Q, T, after=60.0)]
+        assert abs(part.half_life_s - half_life) < 1e-6 * half_life
         # the effective samples: a geometric sum over the half-life's messages
         assert abs(part.n - rate * half_life / np.log(2.0)) < 0.05 * part.n, part.n
         assert np.all(np.mean(errs, axis=0) / T.var(axis=0) < 1e-3)
