@@ -32,6 +32,9 @@ The shared logs are found in ``../shared/data`` (or ``DGP_SHARED_DATA``); a case
 absent is skipped with the reason (a user's clone has none). ``LIMITS`` are the tests'
 (``test/test_robot_family.py``, default suite).
 
+``curve``: the whole UR10 log (``ur10_log_rest.npz`` beside the shared part) learned on its first
+20 / 40 / 60 % and held out on its last 40 %.
+
 Usage: bench/robot_family.py [--quick] [--out DIR]
 """
 from __future__ import annotations
@@ -96,6 +99,54 @@ def load_log(name: str, path: str) -> dict:
     return {'name': name, 't': z['t'], 'q': z['q'], 'qd': z['qd'], 'tau': z['tau_meas'],
             'ref': z['tau_friction_offline'], 'names': list(names),
             'plugin': f'python:{module}:tau_rb', 'split': split, 'hz': None}
+
+
+#: the whole UR10 log: its shared rest, and the learning curve's fractions (the last 40 %
+#: held out at each)
+UR10_REST = 'ur10_log_rest.npz'
+CURVE = (0.2, 0.4, 0.6)
+
+
+def whole_log(name: str = 'ur10_real') -> Optional[dict]:
+    """Return arm ``name``'s whole log (its train part and its rest), or None if absent."""
+    path = arm_dir(name)
+    if path is None or not os.path.isfile(os.path.join(path, UR10_REST)):
+        return None
+    log = load_log(name, path)
+    z = np.load(os.path.join(path, UR10_REST), allow_pickle=False)
+    for k, key in (('t', 't'), ('q', 'q'), ('qd', 'qd'), ('tau', 'tau_meas'),
+                   ('ref', 'tau_friction_offline')):
+        log[k] = np.concatenate([log[k], z[key]])
+    return log
+
+
+def curve(log: dict) -> list:
+    """Learn ``log``'s first 20 / 40 / 60 % (``CURVE``), score each on its last 40 %."""
+    t = log['t']
+    span = float(t[-1] - t[0])
+    return [(f, arm_case(log, split_s=float(t[0] + f * span),
+                         test_s=float(t[0] + 0.6 * span))) for f in CURVE]
+
+
+def _curve_section(rows: list) -> list:
+    lines = ['', '### The whole UR10 log: the learning curve', '',
+             'The whole 27.5 s log (`ur10_log_train.npz` and `ur10_log_rest.npz`), learned on its '
+             'first 20 / 40 / 60 % with the defaults and held out on its last 40 % (the '
+             'acceptance split at 60 %). Columns as above; `best refit` is the better of the '
+             'Coulomb-viscous and sigmoid refits of the same learned samples, per mean.', '']
+    table = []
+    for f, r in rows:
+        if r is None or not r['trained']:
+            table.append([f'{f:.0%}', 'never trained'] + ['-'] * 6)
+            continue
+        best = min(float(np.mean(r['cv'])), float(np.mean(r['sigmoid'])))
+        table.append([f'{f:.0%}', C.fmt(r['mean']), C.fmt(np.mean(r['parametric'])),
+                      C.fmt(np.mean(r['cv'])), C.fmt(np.mean(r['sigmoid'])),
+                      f'{r["mean"] / best:.3f}', ' / '.join(C.fmt(v) for v in r['held']),
+                      f'{r["structure"]}; {r["elements"]}'])
+    return lines + [C.md_table(['learned', 'held out', 'its parametric part', 'cv refit',
+                                'sigmoid refit', 'over the best refit', 'per joint',
+                                'structure; elements'], table), '']
 
 
 def resample(log: dict, hz: float) -> dict:
@@ -165,9 +216,11 @@ def _baselines(out: dict, learned: list, qd_te: np.ndarray, ref_te: np.ndarray) 
                                             for j in range(N)]), ref_te)
 
 
-def arm_case(log: dict, split_s=None, baselines: bool = True, **params) -> dict:
+def arm_case(log: dict, split_s=None, baselines: bool = True, test_s=None, **params) -> dict:
     """
-    Learn ``log`` on t < split and score it (module docstring); ``params``: besides defaults.
+    Learn ``log`` on t < split and score it (module docstring) on t >= split or ``test_s``.
+
+    ``params``: estimator parameters besides the defaults.
 
     Returns a dict with ``held``, ``cv``, ``sigmoid``, ``live``, ``zero`` (N,) NMSE, ``mean``,
     ``parametric`` (the saved model's parametric part alone, held out), ``prior`` (with the
@@ -179,7 +232,7 @@ def arm_case(log: dict, split_s=None, baselines: bool = True, **params) -> dict:
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
     split = log['split'] if split_s is None else split_s
     t, q, qd, ref = log['t'], log['q'], log['qd'], log['ref']
-    tr, te = t < split, t >= split
+    tr, te = t < split, t >= (split if test_s is None else test_s)
     est = OnlineEstimator(EstimatorConfig(**dict({'inverse_dynamics': log['plugin']}, **params,
                                                  refit_mode='sync')))
     est.set_source('bag')
@@ -344,9 +397,13 @@ def main(argv=None) -> int:
                                      f'{r["wall_s"]:.1f} s, held out {r.get("mean", "-")}'))
         results.append((label, r))
     harm = [] if a.quick else [(label, no_harm(label)) for label in NO_HARM]
+    whole = None if a.quick else whole_log()
+    rows = [] if whole is None else curve(whole)
     body = report(a, results, time.perf_counter() - t0)
     if harm:
         body += '\n'.join(_no_harm_section(harm))
+    if rows:
+        body += '\n'.join(_curve_section(rows))
     C.write_section(a.out, NAME, body)
     return 0
 

@@ -34,14 +34,14 @@ import copy
 from typing import List, Optional, Tuple
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 
-from dgp_ros.gp.joint_element import ElementFit, M_BASIS
+from dgp_ros.gp.joint_element import ElementFit, M_BASIS, MIN_HALF_SAMPLES
 
 from .coupling_track import CONFIRM_S, COUPLING_RIDGE, COUPLING_RIDGES, CouplingTrack
 from .element_track import ElementTrack
+from .layout import Unknowns
 from .parametric import F, FAMILIES, friction_columns, ParametricFit
-from .statistics import nonnegative_part, Stats
+from .statistics import Stats
 
 __all__ = ['LongHistory', 'BLOCK_S', 'HALF_LIVES_S']
 
@@ -57,14 +57,15 @@ SIMPLER_MARGIN = 0.05
 #: a joint keeps its offset only where it cuts that joint's own CV score by this fraction (one
 #: joint's score is noisier than the mean over joints that ``OFFSET_MARGIN`` judges)
 JOINT_OFFSET_MARGIN = 0.3
-#: an offset is identifiable once a joint's mean sign of velocity is within this of zero
-REVERSAL = 0.8
 #: recent memories: a block's weight halves with every this many seconds of learning time
 #: (blocks of data) that follow it (friction that drifts: a gearbox warming up, wear); the
 #: cross-validation chooses among them and the whole history
 HALF_LIVES_S = (10.0, 30.0, 90.0)
 #: a recent memory serves where it cuts the chosen structure's CV score by this fraction
 RECENT_MARGIN = 0.3
+#: a joint's friction gets a level per direction only where two halves of the run differ on
+#: that part by less than this times the part (they agree on its sign and size)
+ASYM_AGREEMENT = 1.0
 #: where couplings serve, the friction family serving is kept unless another's CV score is
 #: lower by more than this fraction
 SWITCH_MARGIN = 0.1
@@ -105,7 +106,7 @@ class LongHistory:
         self.coupling = CouplingTrack(self.N) if couplings else None
         self.K = 0 if self.coupling is None else self.coupling.K
         self.ridge = COUPLING_RIDGE             # the couplings' ridge (CV chooses among RIDGES)
-        self.L = F + 1 + self.C + self.K
+        self.L = 2 * F + 1 + self.C + self.K
         #: the statistics' columns: the parametric ones (friction, offset, correction,
         #: couplings), then the element's (module docstring)
         self.Lx = self.L + (M_BASIS if elements else 0)
@@ -124,11 +125,9 @@ class LongHistory:
 
     def _layout(self) -> None:
         """Lay out the unknowns: friction per joint, offsets, the shared correction, couplings."""
-        N, K, k0 = self.N, self.K, self.N * F + self.N + self.C
-        self.P = k0 + N * K
-        self._idx = [np.r_[np.arange(j * F, (j + 1) * F), N * F + j,
-                           N * F + N + np.arange(self.C), k0 + j * K + np.arange(K)]
-                     for j in range(N)]
+        self.unknowns = Unknowns(self.N, self.C, self.K)
+        self.P = self.unknowns.P
+        self._idx = self.unknowns.idx
 
     # ------------------------------------------------------------------ data
     def push(self, stamp: float, q, qd, qdd, r) -> Optional[np.ndarray]:
@@ -179,7 +178,7 @@ class LongHistory:
 
     def _drop_columns(self, idx: np.ndarray) -> None:
         """Delete coupling features ``idx`` (of the K) from every statistics block (exact)."""
-        cols = F + 1 + self.C + idx
+        cols = 2 * F + 1 + self.C + idx
         for st in [self._older, self._cur, *self._recent, *self._blocks, *self.element.halves]:
             st.drop(cols)
         self.K -= idx.size
@@ -227,89 +226,29 @@ class LongHistory:
         return t
 
     def _global(self, st: Stats) -> Tuple[np.ndarray, np.ndarray]:
-        G = np.zeros((self.P, self.P))
-        b = np.zeros(self.P)
-        L = self.L
-        for j, idx in enumerate(self._idx):
-            G[np.ix_(idx, idx)] += st.Gt[j][:L, :L]
-            b[idx] += st.bt[j][:L]
-        return G, b
+        return self.unknowns.gram(st)
 
-    def _mask(self, family: str, offsets, conservative: bool) -> np.ndarray:
-        """Columns of a structure; ``offsets``: a bool, or (N,) bools (one per joint)."""
-        m = np.zeros(self.P, bool)
-        cols = FAMILIES[family]
-        offs = np.broadcast_to(np.asarray(offsets, bool), (self.N,))
-        for j in range(self.N):
-            m[j * F + np.asarray(cols, int)] = True
-            m[self.N * F + j] = offs[j]
-        if conservative and self.C:
-            m[self.N * F + self.N:self.N * F + self.N + self.C] = True
+    def _mask(self, family: str, offsets, conservative: bool, asymmetric=False) -> np.ndarray:
+        """Columns of a structure; ``offsets``, ``asymmetric``: a bool, or (N,) bools."""
         c = None if self.coupling is None else self.coupling.serving(CONFIRM_S)
-        if c is not None:               # the most persistent column's couplings: always
-            size = self.K // len(self.coupling.cols)
-            k0 = self.N * F + self.N + self.C
-            for j in range(self.N):
-                m[k0 + j * self.K + c * size + np.arange(size)] = True
-        return m
-
-    def _identifiable(self, G: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """
-        Return ``mask`` without the offsets of joints that have not moved both ways.
-
-        While a joint has moved one way only, its Coulomb columns equal a constant on the data
-        and its offset is not identifiable: least squares then trades a huge friction against a
-        huge offset (a UR10's wrist 2, 3.5 s into its stream: +490 N m of Coulomb friction,
-        -485 N m of offset). An offset needs at least ``(1 - REVERSAL) / 2`` of the samples on
-        each side (from the Gram matrix: the mean of the sharpest Coulomb column).
-        """
-        mask = mask.copy()
-        for j in range(self.N):
-            k = self.N * F + j
-            if mask[k] and G[k, k] > 0 and abs(G[k, j * F + 1]) > REVERSAL * G[k, k]:
-                mask[k] = False
-        return mask
+        # the most persistent column's couplings serve always
+        coupling = None if c is None else (c, self.K // len(self.coupling.cols))
+        return self.unknowns.mask(family, offsets, conservative, coupling, asymmetric)
 
     def _solve(self, G: np.ndarray, b: np.ndarray, mask: np.ndarray, n: int,
                ridge: Optional[float] = None) -> np.ndarray:
         """
-        Bounded least squares from the statistics: friction >= 0, the rest free.
+        Bounded least squares from the statistics (``layout.Unknowns.solve``).
 
         ridge : the couplings' (``ridge`` samples' worth of each feature's mean square; None:
         the history's ``self.ridge``, chosen by CV).
         """
-        theta = np.zeros(self.P)
-        r = self.ridge if ridge is None else float(ridge)
-        idx = np.flatnonzero(self._identifiable(G, mask))
-        if idx.size == 0 or n == 0:
-            return theta
-        Gs = G[np.ix_(idx, idx)].copy()
-        ridge = np.full(idx.size, 0.0)
-        k0 = self.N * F + self.N + self.C
-        is_c = (idx >= self.N * F + self.N) & (idx < k0)
-        ridge[is_c] = getattr(self.basis, 'RIDGE', 0.0)
-        d = np.diag(Gs).copy()
-        is_k = idx >= k0
-        if is_k.any():          # the couplings (module constant); not the constant feature
-            first = (idx - k0) % max(self.K, 1) == 0
-            ridge[is_k & ~first] = r * d[is_k & ~first] / max(n, 1)
-        dn = d[~is_k]
-        Gs[np.diag_indices_from(Gs)] += ridge + 1e-9 * d + 1e-12 * (
-            (dn.mean() if dn.size else 0.0) + 1e-300)
-        bounded = idx < self.N * F
-        x = cho_solve(cho_factor(Gs), b[idx])
-        if np.any(x[bounded] < 0.0):
-            x = nonnegative_part(Gs, b[idx], bounded)
-        theta[idx] = x
-        return theta
+        return self.unknowns.solve(G, b, mask, n, getattr(self.basis, 'RIDGE', 0.0),
+                                   self.ridge if ridge is None else float(ridge))
 
     def _sse(self, st: Stats, theta: np.ndarray) -> np.ndarray:
         """Squared error per joint of ``theta`` on ``st`` with the applied columns, (N,)."""
-        out = np.empty(self.N)
-        for j, idx in enumerate(self._idx):
-            t = theta[idx]
-            out[j] = st.yy[j] - 2.0 * t @ st.bd[j][:self.L] + t @ st.Gd[j][:self.L, :self.L] @ t
-        return np.maximum(out, 0.0)
+        return self.unknowns.sse(st, theta)
 
     def candidates(self) -> List[tuple]:
         """Every structure ``(family, offsets, conservative)`` there is to choose from."""
@@ -353,6 +292,7 @@ class LongHistory:
                     scores[keep] <= (1.0 + SWITCH_MARGIN) * scores[best]:
                 best = keep
             best = (best[0], self._joint_offsets(per_joint, best), best[2])
+            best = best + (self._joint_asymmetry(best, folds, total),)
             k = self._memory(best, folds, at, n_test * var)
             if self._coupled():         # the couplings' ridge: the one the CV blocks favour
                 self.ridge = min(COUPLING_RIDGES, key=lambda r: self._score(
@@ -431,9 +371,48 @@ class LongHistory:
             return np.zeros(self.N, bool)
         return with_ < (1.0 - JOINT_OFFSET_MARGIN) * without
 
-    def fit(self, family: str, offsets, conservative: bool) -> ParametricFit:
+    def _joint_asymmetry(self, best: tuple, folds: list, total: Stats) -> np.ndarray:
+        """
+        Return which joints of the chosen structure get a friction per direction, (N,) bools.
+
+        Like an offset (with which a direction's extra level is confounded on a joint that moved
+        mostly one way), an extra part of one joint needs a clear win on that joint's own noisy
+        score: the structure with every joint asymmetric must score below
+        (1 - JOINT_OFFSET_MARGIN) x the symmetric one on that joint and lower on each scored
+        block. And the two interleaved halves of the run, each of at least the element's
+        ``MIN_HALF_SAMPLES``, must differ on it by less than ``ASYM_AGREEMENT`` times the part
+        itself: a level per direction learned on a short start, where the joint passed its poses
+        one way each, is the pose's load, not the direction's friction, and is wrong on the
+        next motion.
+        """
+        none = np.zeros(self.N, bool)
+        halves = self.element.halves
+        if not FAMILIES[best[0]] or min(h.n for h in halves) < MIN_HALF_SAMPLES:
+            return none
+        per = []
+        for asym in (False, True):
+            m = self._mask(*best[:3], asym)
+            per.append(np.array([self._sse(test, self._solve(G, b, m, n))
+                                 for (G, b), n, test in folds]))        # (folds, N)
+        win = (per[1].sum(axis=0) < (1.0 - JOINT_OFFSET_MARGIN) * per[0].sum(axis=0)) & \
+            np.all(per[1] < per[0], axis=0)
+        if not win.any():
+            return none
+        m = self._mask(*best[:3], True)
+        full = self._solve(*self._global(total), m, total.n)
+        th = [self._solve(*self._global(h), m, h.n) for h in halves]
+        out = none.copy()
+        for j in np.flatnonzero(win):
+            e = self._idx[j][F:2 * F]                   # the joint's even (asymmetric) part
+            G = total.Gt[j][F:2 * F, F:2 * F]
+            d, w = th[0][e] - th[1][e], full[e]
+            out[j] = d @ G @ d < ASYM_AGREEMENT ** 2 * max(w @ G @ w, 1e-300)
+        return out
+
+    def fit(self, family: str, offsets, conservative: bool, asymmetric=False) -> ParametricFit:
         """Fit one given structure on the whole history."""
-        return self._fit(self._total(self._blocks, True), (family, offsets, conservative), {})
+        return self._fit(self._total(self._blocks, True),
+                         (family, offsets, conservative, asymmetric), {})
 
     def refit(self, fit: ParametricFit) -> ParametricFit:
         """
@@ -445,7 +424,9 @@ class LongHistory:
         k = -1 if fit.memory == 'all' else \
             [f'{h:g} s' for h in HALF_LIVES_S].index(fit.memory)
         out = self._fit(self._total(self._blocks, True, k),
-                        (fit.family, fit.offsets, fit.conservative), fit.scores, None, k)
+                        (fit.family, fit.offsets, fit.conservative,
+                         False if fit.asymmetric is None else fit.asymmetric),
+                        fit.scores, None, k)
         out.samples = fit.samples               # the selection's growth counts from its own
         return out
 
@@ -455,22 +436,25 @@ class LongHistory:
         G, b = self._global(total)
         mask = self._mask(*cand)
         theta = self._solve(G, b, mask, total.n)
-        N = self.N
+        N, U = self.N, self.unknowns
         offs = np.broadcast_to(np.asarray(cand[1], bool), (N,)) & \
-            (theta[N * F:N * F + N] != 0.0)
-        k0 = N * F + N + self.C
+            (theta[U.off0:U.corr0] != 0.0)
+        k0 = U.coup0
         coupling = None
         c = None if self.coupling is None else self.coupling.serving(CONFIRM_S)
         if c is not None and np.any(theta[k0:]):
             size = self.K // len(self.coupling.cols)          # the serving column's features
             W = theta[k0:].reshape(N, self.K)[:, c * size:(c + 1) * size].copy()
             coupling = (self.coupling.fitted_basis(c), W)
-        return ParametricFit(cand[0], offs, bool(cand[2]),
-                             np.maximum(theta[:N * F].reshape(N, F), 0.0),
-                             theta[N * F:N * F + N].copy(), theta[N * F + N:k0].copy(),
+        coef, coef_neg = U.friction(theta)
+        asym = np.broadcast_to(np.asarray(cand[3] if len(cand) > 3 else False, bool),
+                               (N,)).copy()
+        return ParametricFit(cand[0], offs, bool(cand[2]), coef,
+                             theta[U.off0:U.corr0].copy(), theta[U.corr0:k0].copy(),
                              self.basis, scores, total.n if samples is None else samples,
                              'all' if memory < 0 else f'{HALF_LIVES_S[memory]:g} s',
-                             self._element(mask, theta, total, memory), coupling)
+                             self._element(mask, theta, total, memory), coupling, coef_neg,
+                             asym)
 
     def _element(self, mask: np.ndarray, theta: np.ndarray, total: Stats,
                  memory: int) -> Optional[ElementFit]:
@@ -492,4 +476,5 @@ class LongHistory:
                 train = whole if memory < 0 else self._total(blocks[:i], False, memory)
                 th = self._solve(*self._global(train), mask, train.n)
                 folds.append((train, [th[idx] for idx in self._idx], block))
-        return self.element.fit(self.L, F, [theta[idx] for idx in self._idx], total, folds)
+        return self.element.fit(self.L, 2 * F, [theta[idx] for idx in self._idx], total,
+                                folds)

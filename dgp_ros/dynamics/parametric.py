@@ -4,7 +4,9 @@ The parametric part's vocabulary: its friction columns, its families and a fitte
 What the long history (:mod:`~dgp_ros.dynamics.history`) fits and the learner serves: per joint
 ``j`` friction ``f_j(v) . c_j`` with ``c_j >= 0`` (viscous ``v``, Coulomb ``tanh(v / eps_k)`` at
 :data:`FRICTION_EPS`, Stribeck ``tanh(v / EPS_S) exp(-(v / vs)^2)`` at :data:`STRIBECK_VS`: every
-column odd, its coefficient non-negative, so passive), an offset, a conservative correction of
+column odd, its coefficient non-negative, so passive; an asymmetric family has a level per
+direction of motion, each non-negative: the Coulomb and viscous friction of a geared joint
+differ between its directions), an offset, a conservative correction of
 the rigid-body model, and on a system that is not an arm the couplings of a persistent column
 (``gp.coupled``); :class:`ParametricFit` holds one fitted structure and turns it into the D-GP's
 prior mean (``friction_mean``) and the correction a saved model carries. No rclpy.
@@ -27,18 +29,20 @@ FRICTION_EPS = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2)
 STRIBECK_VS = (0.05, 0.2)
 EPS_S = 0.01
 F = 1 + len(FRICTION_EPS) + len(STRIBECK_VS)
-#: friction families -> their columns among the F per joint
+#: friction families -> their (odd) columns among the F per joint; an asymmetric joint adds
+#: each one's even twin ``|col|``, F further on (``layout.Unknowns``)
 FAMILIES = {'none': [], 'viscous': [0], 'friction': list(range(1 + len(FRICTION_EPS))),
             'friction+stribeck': list(range(F))}
 
 
 def friction_columns(v: np.ndarray) -> np.ndarray:
-    """Friction columns of velocities v (k,) -> (k, F) (module docstring)."""
+    """Friction columns of velocities v (k,) -> (k, 2F): the odd ones, then ``|col|``."""
     v = np.asarray(v, float)
     cols = [v] + [np.tanh(v / e) for e in FRICTION_EPS]
     t = np.tanh(v / EPS_S)
     cols += [t * np.exp(-(v / vs) ** 2) for vs in STRIBECK_VS]
-    return np.stack(cols, axis=-1)
+    odd = np.stack(cols, axis=-1)
+    return np.concatenate([odd, np.abs(odd)], axis=-1)
 
 
 @dataclass
@@ -48,7 +52,8 @@ class ParametricFit:
 
     ``offsets``: per joint, whether it has one ((N,) bools; a bool for all joints alike).
 
-    coef : (N, F) friction (>= 0); bias : (N,) offsets; theta : (C,) correction; scores :
+    coef : (N, F) friction (>= 0) for v >= 0, coef_neg : the same for v < 0 (None: symmetric);
+    bias : (N,) offsets; theta : (C,) correction; scores :
     cross-validation score of every candidate ``(family, offsets, conservative) -> score``
     (empty before there are blocks to score); basis : the correction's basis or None.
     """
@@ -66,12 +71,21 @@ class ParametricFit:
     element: Optional[ElementFit] = None
     #: the couplings of the persistent columns: (``gp.coupled.CouplingBasis``, W (N, K)) or None
     coupling: Optional[tuple] = None
+    #: friction (>= 0) for v < 0 where a joint is asymmetric (None: every joint symmetric)
+    coef_neg: Optional[np.ndarray] = None
+    #: per joint, whether its friction has a level per direction of motion ((N,) bools)
+    asymmetric: Optional[np.ndarray] = None
 
     def label(self, names=None) -> str:
         """Name the structure (/diagnostics ``structure``); ``names``: the velocities'."""
         on = np.flatnonzero(np.broadcast_to(np.asarray(self.offsets, bool), self.bias.shape))
         parts = [self.family, 'no offsets' if not on.size else 'offsets' if
                  on.size == self.bias.size else 'offsets on ' + ' '.join(str(j) for j in on)]
+        asym = np.flatnonzero(np.asarray(self.asymmetric, bool)) if \
+            self.asymmetric is not None else np.zeros(0, int)
+        if asym.size:
+            parts.append('asymmetric' if asym.size == self.bias.size else
+                         'asymmetric on ' + ' '.join(str(j) for j in asym))
         if self.basis is not None:
             parts.append('correction' if self.conservative else 'no correction')
         if self.coupling is not None:
@@ -88,7 +102,8 @@ class ParametricFit:
     def friction_mean(self):
         """Return the friction as a frozen passive prior mean of the D-GP."""
         from dgp_ros.gp.means import BasisFrictionMean
-        base = BasisFrictionMean(self.coef, FRICTION_EPS, EPS_S, STRIBECK_VS)
+        base = BasisFrictionMean(self.coef, FRICTION_EPS, EPS_S, STRIBECK_VS,
+                                 coef_neg=self.coef_neg)
         if self.coupling is not None:
             from dgp_ros.gp.coupled import CoupledMean
             return CoupledMean(base, *self.coupling)

@@ -32,19 +32,27 @@ def _prior_code(spec: Spec) -> str:
     coef, eps, vs = p['coef'], p['eps'], p['vs']
     K, S = int(p['K']), vs.shape[1]
     el = p.get('element')
+    neg = p.get('coef_neg')
     out = _const('PC', coef)
-    body = ['    double out = PC[i][0];']
+    # an asymmetric prior: the coefficients of v < 0 are their own (gp/means.py)
+    pc = 'PC[i]'
+    if neg is not None:
+        out += _const('PCN', neg)
+        pc = 'pc'
+    body = [f'    double out = {pc}[0];']
+    if neg is not None:
+        body.insert(0, '    const double* pc = qd[i] < 0.0 ? PCN[i] : PC[i];')
     if K or S or el is not None:
         body.insert(0, '    const double a = std::fabs(qd[i]);')
     if K or S:
         out += _const('PE', eps)
-        body += [f'    out += PC[i][{1 + k}] * tanh_over(a, PE[i][{k}]);' for k in range(K)]
+        body += [f'    out += {pc}[{1 + k}] * tanh_over(a, PE[i][{k}]);' for k in range(K)]
     if S:
         out += _const('PV', vs)
         body.append(f'    const double t = tanh_over(a, PE[i][{K}]);')
         for s in range(S):
             body += [f'    {{ const double r = a / PV[i][{s}];',
-                     f'      out += PC[i][{1 + K + s}] * t * std::exp(-(r * r)); }}']
+                     f'      out += {pc}[{1 + K + s}] * t * std::exp(-(r * r)); }}']
     tail = '    md[i] = out;'
     if el is not None:
         out += _element_code(el, spec.N)
@@ -52,7 +60,7 @@ def _prior_code(spec: Spec) -> str:
                 '    if (e >= 0) out = std::max(out + element_diag(e, qd[i], a), 0.0);\n'
                 '    md[i] = out;')
     out += TANH_OVER.substitute() if (K or S or el is not None) else ''
-    arg = 'qd' if K or S or el is not None else ''
+    arg = 'qd' if K or S or el is not None or neg is not None else ''
     out += (f'inline void prior_diag(const double* {arg}, double* md) noexcept {{\n'
             '  for (std::size_t i = 0; i < N; ++i) {\n' + '\n'.join(body) + '\n' + tail +
             '\n  }\n}\n')

@@ -148,8 +148,11 @@ def _prior(mean, N: int) -> dict:
     if isinstance(mean, BasisFrictionMean):
         eps = np.append(mean.eps, mean.eps_s)
         K, S = mean.eps.size, mean.vs.size
-        return {'coef': np.asarray(mean.coef, float), 'eps': np.tile(eps, (N, 1)),
-                'vs': np.tile(np.asarray(mean.vs, float), (N, 1)), 'K': K, 'S': S}
+        out = {'coef': np.asarray(mean.coef, float), 'eps': np.tile(eps, (N, 1)),
+               'vs': np.tile(np.asarray(mean.vs, float), (N, 1)), 'K': K, 'S': S}
+        if mean.coef_neg is not None:       # its own coefficients for v < 0
+            out['coef_neg'] = np.asarray(mean.coef_neg, float)
+        return out
     raise ExportError(f'the prior {type(mean).__name__} has no C++ form (viscous, friction, '
                       f'frozen friction and coupled priors do): refit with one of these priors')
 

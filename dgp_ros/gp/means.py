@@ -328,24 +328,33 @@ class BasisFrictionMean(_SpeedDiag):
     Friction with frozen coefficients, fitted elsewhere (the long history of the online learner).
 
     ``m_d(v) v = F_v v + sum_k F_k tanh(v / eps_k) + sum_s S_s tanh(v / eps_s) exp(-(v / vs_s)^2)``
-    with every coefficient >= 0: even, non-negative and non-increasing in ``|v|`` like
-    :class:`FrictionMean`, so passive and bounded on a box by its corners. ``fit`` keeps the
+    with every coefficient >= 0: non-negative and non-increasing in ``|v|`` on each side of rest
+    like :class:`FrictionMean`, so passive and bounded on a box by its corners. With
+    ``coef_neg`` the coefficients of ``v < 0`` are their own (a joint's friction that differs
+    between its directions of motion); without, the diagonal is even. ``fit`` keeps the
     coefficients (the GP learns what they leave).
 
     Parameters
     ----------
     coef : (N, 1 + K + S) array
-        ``[F_v, F_1..F_K, S_1..S_S]`` per joint, >= 0 (force per velocity unit, force).
+        ``[F_v, F_1..F_K, S_1..S_S]`` per joint, >= 0 (force per velocity unit, force), for
+        ``v >= 0`` (and ``v < 0`` without ``coef_neg``).
     eps : (K,) Coulomb smoothing velocities; eps_s : Stribeck smoothing velocity;
-    vs : (S,) Stribeck velocities (velocity units).
+    vs : (S,) Stribeck velocities (velocity units); coef_neg : like ``coef``, for ``v < 0``.
 
     """
 
     name = 'friction_basis'
 
-    def __init__(self, coef=None, eps=(), eps_s: float = 0.01, vs=(), bias: bool = False):
+    def __init__(self, coef=None, eps=(), eps_s: float = 0.01, vs=(), bias: bool = False,
+                 coef_neg=None):
         super().__init__(bias)
         self.coef = None if coef is None else np.maximum(np.asarray(coef, float), 0.0)
+        self.coef_neg = None if coef_neg is None else \
+            np.maximum(np.asarray(coef_neg, float), 0.0)
+        if self.coef_neg is not None and (self.coef is None or
+                                          self.coef_neg.shape != self.coef.shape):
+            raise ValueError('coef_neg must have the shape of coef')
         self.eps = np.asarray(eps, float)
         self.eps_s = float(eps_s)
         self.vs = np.asarray(vs, float)
@@ -359,25 +368,58 @@ class BasisFrictionMean(_SpeedDiag):
             self.bias = np.zeros(self.coef.shape[0])
         return self
 
-    def _diag_at(self, a: np.ndarray) -> np.ndarray:
-        """``m_d`` at speeds ``a = |v|`` (..., N): the shared eps and vs of every joint."""
+    def _diag_at(self, a: np.ndarray, coef: Optional[np.ndarray] = None) -> np.ndarray:
+        """``m_d`` at speeds ``a = |v|`` (..., N) with ``coef`` (default: ``v >= 0``'s)."""
         key = (self.eps, self.eps_s)
         cached = self.__dict__.get('_eps_all')
         if cached is None or cached[0][0] is not key[0] or cached[0][1] != key[1]:
             cached = self._eps_all = (key, np.append(self.eps, self.eps_s))
-        return _friction_diag(a, self.coef, cached[1], self.vs)
+        return _friction_diag(a, self.coef if coef is None else coef, cached[1], self.vs)
+
+    def diag(self, Qd):
+        a = np.abs(Qd)
+        d = self._diag_at(a)
+        if self.coef_neg is None:
+            return d
+        return np.where(np.asarray(Qd) < 0.0, self._diag_at(a, self.coef_neg), d)
+
+    def diag_bounds(self, lo, hi):
+        if self.coef_neg is None:
+            return super().diag_bounds(lo, hi)
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        # each side of rest is non-increasing in the speed: its range is at its two ends
+        pos, neg = hi >= 0.0, lo < 0.0
+        p_hi = self._diag_at(np.maximum(lo, 0.0))
+        p_lo = self._diag_at(np.maximum(hi, 0.0))
+        n_hi = self._diag_at(np.maximum(-hi, 0.0), self.coef_neg)
+        n_lo = self._diag_at(np.maximum(-lo, 0.0), self.coef_neg)
+        dlo = np.where(pos & neg, np.minimum(p_lo, n_lo), np.where(pos, p_lo, n_lo))
+        dhi = np.where(pos & neg, np.maximum(p_hi, n_hi), np.where(pos, p_hi, n_hi))
+        return dlo, dhi
+
+    def diag_inf(self):
+        out = self.coef[:, 0].copy()
+        return out if self.coef_neg is None else np.minimum(out, self.coef_neg[:, 0])
 
     def diag_ref(self):
-        scale = 10.0 * (float(self.eps.max()) if self.eps.size else 1.0)
-        return self._diag_at(np.full(self.coef.shape[0], scale))
+        scale = np.full(self.coef.shape[0],
+                        10.0 * (float(self.eps.max()) if self.eps.size else 1.0))
+        ref = self._diag_at(scale)
+        return ref if self.coef_neg is None else np.maximum(ref,
+                                                            self._diag_at(scale, self.coef_neg))
 
     def _params(self):
-        return {'coef': self.coef.tolist(), 'eps': self.eps.tolist(), 'eps_s': self.eps_s,
-                'vs': self.vs.tolist()}
+        out = {'coef': self.coef.tolist(), 'eps': self.eps.tolist(), 'eps_s': self.eps_s,
+               'vs': self.vs.tolist()}
+        if self.coef_neg is not None:
+            out['coef_neg'] = self.coef_neg.tolist()
+        return out
 
     @classmethod
     def _from(cls, d):
-        return cls(np.asarray(d['coef'], float), d['eps'], float(d['eps_s']), d['vs'])
+        neg = d.get('coef_neg')
+        return cls(np.asarray(d['coef'], float), d['eps'], float(d['eps_s']), d['vs'],
+                   coef_neg=None if neg is None else np.asarray(neg, float))
 
 
 class ConstantMean(PriorMean):

@@ -132,7 +132,7 @@ class Structure:
             # a pose-dependent correction fitted to a short or narrow history can be larger
             # than the residual it corrects (targets of 13 N m where the residual spans 2.6 on
             # a Panda 3 s into a stream): the D-GP would learn it as damping; not that one
-            fit = self._history.fit(fit.family, fit.offsets, False)
+            fit = self._history.fit(fit.family, fit.offsets, False, fit.asymmetric)
             h.corrections_refused += 1
         self._param = fit
         h.structure = fit.label(self._names)

@@ -86,6 +86,10 @@ def _train(directory):
     m.grounds_ = _grounds(7, 5)
     out['element_arm'] = str(d / 'element_arm.npz')
     m.save(out['element_arm'])
+    m = DiagDGP(prior=_element_prior(asymmetric=True), n_restarts=0).fit(
+        *_arm_data(coupling=0.1, seed=9))
+    out['asym_arm'] = str(d / 'asym_arm.npz')
+    m.save(out['asym_arm'])
     m = _coupled_model(friction=False)
     out['coupled'] = str(d / 'coupled.npz')
     m.save(out['coupled'])
@@ -131,14 +135,19 @@ def _coupled_model(friction, n=150, seed=8):
     return make_model('full', prior=prior, bias=False, passivity='certified').fit(Q, T)
 
 
-def _element_prior(N=7, seed=6):
-    """Return a frozen friction prior with elements on joints 0, 2 and 5 (gp.joint_element)."""
+def _element_prior(N=7, seed=6, asymmetric=False):
+    """
+    Return a frozen friction prior with elements on joints 0, 2 and 5 (gp.joint_element).
+
+    asymmetric: its base has coefficients of its own for v < 0 (``coef_neg``).
+    """
     from dgp_ros.dynamics.parametric import EPS_S, F, FRICTION_EPS, STRIBECK_VS
     from dgp_ros.gp.joint_element import JointElementMean, M_BASIS, VelocityBasis
     from dgp_ros.gp.means import BasisFrictionMean
     rng = np.random.default_rng(seed)
+    neg = np.abs(rng.normal(0.0, 0.4, (N, F))) if asymmetric else None
     base = BasisFrictionMean(np.abs(rng.normal(0.0, 0.2, (N, F))), FRICTION_EPS, EPS_S,
-                             STRIBECK_VS)
+                             STRIBECK_VS, coef_neg=neg)
     W = np.zeros((N, M_BASIS))
     W[[0, 2, 5]] = rng.normal(0.0, 0.3, (3, M_BASIS)) / np.arange(1, M_BASIS + 1)
     return JointElementMean(base, VelocityBasis(rng.uniform(0.5, 2.0, N)), W)
@@ -197,6 +206,8 @@ def test_guarantees_as_proven(built):
     assert built['a320'][0].guarantee == 'passive-on-domain'
     assert built['a320'][0].weight[0] == 'domain'
     assert list(built['element_arm'][0].prior['element']['joints']) == [0, 2, 5]
+    assert 'coef_neg' in built['asym_arm'][0].prior
+    assert 'coef_neg' not in built['element_arm'][0].prior
     for name in ('coupled', 'coupled_gains'):
         spec = built[name][0]
         assert spec.guarantee == 'passive-on-domain' and spec.weight[0] == 'domain'
@@ -205,8 +216,8 @@ def test_guarantees_as_proven(built):
     assert 'coupled' not in built['a320'][0].prior
 
 
-@pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320', 'element_arm', 'coupled',
-                                  'coupled_gains'])
+@pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320', 'element_arm', 'asym_arm',
+                                  'coupled', 'coupled_gains'])
 @pytest.mark.parametrize('far', [False, True], ids=['inside', 'outside'])
 def test_equals_python_and_frozen_node(built, name, far):
     spec, model, exe, d, path = built[name]
