@@ -16,8 +16,8 @@ import numpy as np
 from .coupled_cpp import coupled_answer, coupled_blend_code, coupled_code, GATE_COUPLED
 from .cpp_runtime import (CHAIN, EXP, GATE, GATE_DIAGONAL, KERNEL, KERNEL_NONE, KERNEL_SCALAR,
                           PROJECT, PSD_FLOOR, TANH_OVER)
-from .errors import ExportError
-from .literals import const as _const, lit as _lit
+from .literals import const as _const, identifier as _identifier, lit as _lit, \
+    string as _string
 from .spec import Spec
 
 __all__ = ['render', 'PAD']
@@ -231,8 +231,7 @@ def _correction_code(spec: Spec) -> str:
 
 def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
     """Return the header text of ``spec`` (module docstring); ``banner``: its comment lines."""
-    if not namespace.replace('_', 'a').isalnum() or namespace[0].isdigit():
-        raise ExportError(f'namespace {namespace!r} is not a C++ identifier')
+    _identifier(namespace, 'namespace')
     N, E = spec.N, len(spec.elements)
     vector = E >= PAD              # fewer elements than a vector's lanes: one at a time
     NE = -(-E // PAD) * PAD if vector else max(E, 1)
@@ -244,8 +243,7 @@ def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
     EN = [el.n for el in spec.elements] or [0]
     sysx = [spec.sy[el.m] / spec.sx[el.n] for el in spec.elements] or [0.0]
     guard = f'DGP_EXPORT_{namespace.upper()}_HPP'
-    names = ', '.join('"' + s.replace('\\', '\\\\').replace('"', '\\"') + '"'
-                      for s in spec.names)
+    names = ', '.join(_string(s) for s in spec.names)
     c = spec.correction
     d = []
     d.append(f'constexpr std::size_t NE = {NE};\nconstexpr std::size_t E = {max(E, 1)};\n')
@@ -271,7 +269,7 @@ def render(spec: Spec, namespace: str = 'dgp_model', banner: str = '') -> str:
     detail = ''.join(d)
     return _HEADER.format(
         banner=banner, guard=guard, ns=namespace, N=N, n=spec.n, E=E,
-        names=names, guarantee=spec.guarantee, method=spec.method,
+        names=names, guarantee=_string(spec.guarantee), method=_string(spec.method),
         has_correction='true' if c is not None else 'false',
         conservative='true' if c is not None and c['basis'] is not None else 'false',
         detail=detail)
@@ -297,8 +295,8 @@ constexpr std::size_t n_elements = {E};
 /// the joint order of every array argument
 inline constexpr const char* joint_names[N] = {{{names}}};
 /// the passivity guarantee every answer carries, proven at export as the frozen node proves it
-inline constexpr const char* guarantee = "{guarantee}";
-inline constexpr const char* certificate_method = "{method}";
+inline constexpr const char* guarantee = {guarantee};
+inline constexpr const char* certificate_method = {method};
 /// the model has a correction (offsets, and with has_conservative a dV/dq(q) term)
 constexpr bool has_correction = {has_correction};
 constexpr bool has_conservative = {conservative};

@@ -216,6 +216,7 @@ class JointStateReader:
         hend = _BODY + 12 + flen
         if not 0 < flen <= _MAX_COUNT or hend > len(raw) or raw[hend - 1] != 0:
             raise ValueError('malformed frame_id')
+        raw[_BODY + 12:hend - 1].decode('utf-8')     # text, not only a length: else refused
         o = hend + (-hend % 4)
         last = self._last
         if last is not None and raw.startswith(last[1], o):   # the same bytes as the last one

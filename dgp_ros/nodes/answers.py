@@ -28,6 +28,8 @@ __all__ = ['MessagePath', 'AGE_PLAUSIBLE_S']
 
 #: stamp -> answer ages beyond this are stamps of another clock (a replayed bag): not latency
 AGE_PLAUSIBLE_S = 60.0
+#: what rclpy puts where a string's bytes are no UTF-8 (the replacement character)
+_REPLACED = '\ufffd'
 
 
 class MessagePath:
@@ -108,6 +110,12 @@ class MessagePath:
             except Exception:       # noqa: BLE001 - not a JointState at all: counted
                 self.estimator.health.messages_received += 1
                 self.estimator.health.reject('undecodable')
+                continue
+            if _REPLACED in msg.header.frame_id or any(_REPLACED in n for n in msg.name):
+                # rclpy replaced bytes that are no UTF-8 text (the codec refused them): a peer's
+                # bad string is dropped and counted, never echoed or decoded again downstream
+                self.estimator.health.messages_received += 1
+                self.estimator.health.reject('bad_text')
                 continue
             s = joint_state_sample(msg)
             est = self.estimator.process_batch(

@@ -208,7 +208,17 @@ class EstimatorConfig:
                                                         or self.urdf_file)
 
     def check_dimension(self, N: int) -> None:
-        """Raise ValueError when a per-joint parameter does not fit N joints."""
+        """
+        Raise ValueError when a per-joint parameter does not fit N joints.
+
+        An estimator is sized by the joint count its first message fixes (the learner's
+        buffers, its process' ring, the answers): ``joints`` of another count at run time is
+        refused with the reason, never half applied.
+        """
+        if self.joints and len(self.joints) != N:
+            raise ValueError(f'joints: {len(self.joints)} names, but this estimator serves {N} '
+                             'joints since its first message; restart the node (with -p '
+                             'joints:=...) to serve another number of joints')
         if self.operating_domain and len(self.operating_domain) != 2 * N:
             raise ValueError(f'operating_domain has {len(self.operating_domain)} entries, the '
                              f'{N} joints need {2 * N}')

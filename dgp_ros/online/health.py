@@ -15,10 +15,11 @@ import numpy as np
 __all__ = ['Health', 'LearnerHealth', 'GapCounter', 'REJECT_REASONS', 'OK', 'WARN', 'ERROR']
 
 # Reasons a message can be rejected for (one counter each).
-# ``undecodable``: bytes that are not a JointState (the node's raw subscription; a bag's reader).
+# ``undecodable``: bytes that are not a JointState (the node's raw subscription; a bag's reader);
+# ``bad_text``: a frame_id or joint name that is not UTF-8 text.
 REJECT_REASONS = ('empty', 'length_mismatch', 'bad_names', 'duplicate_name', 'missing_joint',
                   'dimension_mismatch', 'too_many_joints', 'non_finite', 'out_of_range',
-                  'bad_stamp', 'missing_position', 'undecodable')
+                  'bad_stamp', 'missing_position', 'undecodable', 'bad_text')
 # Status levels (the values of diagnostic_msgs/DiagnosticStatus OK/WARN/ERROR).
 OK, WARN, ERROR = 0, 1, 2
 

@@ -477,3 +477,30 @@ def test_console_tool(models, tmp_path):
     with pytest.raises(SystemExit) as e:
         main(['--help'])
     assert e.value.code == 0
+
+
+HOSTILE = ['a\n#include <cstdlib>\nint evil = (std::abort(), 0);\n//', 'q"uote\\', 'gelenk_ä\t?']
+
+
+def test_text_from_users_and_files_never_reaches_the_compiler_as_code(models, tmp_path):
+    """Joint names, a source path and a namespace: escaped, sanitized or refused."""
+    if CXX is None:
+        pytest.skip('no C++ compiler (g++, clang++, c++ or CXX)')
+    from dgp_ros.export.literals import comment, string
+    for bad in ('é', '1ns', 'a b', 'a\nb', ''):
+        with pytest.raises(ExportError, match='not a C\\+\\+ identifier'):
+            export_cpp(models['a320'], namespace=bad)
+    odd = tmp_path / 'model\nint evil = 1;\\'
+    odd.mkdir()
+    src = odd / 'm.npz'
+    src.write_bytes(pathlib.Path(models['a320']).read_bytes())
+    hdr = str(tmp_path / 'h.hpp')
+    text = export_cpp(str(src), hdr, names=HOSTILE)
+    assert 'int evil' not in text.replace(string(HOSTILE[0]), '').replace(comment(str(src)), '')
+    assert '\n#include <cstdlib>' not in text
+    prog = ('#include "%s"\n#include <cstdio>\nint main() {\n'
+            '  for (auto s : dgp_model::joint_names) std::printf("%%s|", s);\n  return 0;\n}\n'
+            % hdr)
+    exe = compile_program(prog, str(tmp_path / 'names'), CXX)
+    out = subprocess.run([exe], capture_output=True, timeout=30).stdout
+    assert out == ''.join(n + '|' for n in HOSTILE).encode('utf-8')
