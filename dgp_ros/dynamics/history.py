@@ -362,14 +362,38 @@ class LongHistory:
         Return which joints of the chosen structure keep an offset, (N,) bools (module doc).
 
         A joint keeps one where the structure with offsets scores below
-        (1 - JOINT_OFFSET_MARGIN) x the same structure's score without them, on that joint.
+        (1 - JOINT_OFFSET_MARGIN) x the same structure's score without them, on that joint: on
+        the newest blocks, or across the two halves of the run (each fitted on one half and
+        scored on the other: the whole run's evidence, where the newest blocks may hold the
+        joint moving one way only) and no worse on the newest blocks.
         """
         family, _, cons = best
         with_ = per_joint.get((family, True, cons))
         without = per_joint.get((family, False, cons))
         if with_ is None or without is None:
             return np.zeros(self.N, bool)
-        return with_ < (1.0 - JOINT_OFFSET_MARGIN) * without
+        forward = with_ < (1.0 - JOINT_OFFSET_MARGIN) * without
+        across = self._across((family, True, cons), (family, False, cons))
+        if across is None:
+            return forward
+        return forward | ((across[0] < (1.0 - JOINT_OFFSET_MARGIN) * across[1]) &
+                          (with_ <= without))
+
+    def _across(self, *cands) -> Optional[List[np.ndarray]]:
+        """
+        Per candidate, its squared error per joint fitted on each half of the run and scored
+        on the other (N,); None while a half holds fewer than ``MIN_HALF_SAMPLES``.
+        """
+        halves = self.element.halves
+        if min(h.n for h in halves) < MIN_HALF_SAMPLES:
+            return None
+        G = [self._global(h) for h in halves]
+        out = []
+        for cand in cands:
+            m = self._mask(*cand)
+            out.append(sum(self._sse(halves[1 - k], self._solve(*G[k], m, halves[k].n))
+                           for k in (0, 1)))
+        return out
 
     def _joint_asymmetry(self, best: tuple, folds: list, total: Stats) -> np.ndarray:
         """

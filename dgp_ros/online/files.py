@@ -89,7 +89,8 @@ class ModelFiles:
                 raise RuntimeError('no trained model to save yet')
             model = copy.deepcopy(served.model)
         if served.model is not None and self._settings().learning and \
-                (served.unheld(self._window.seq) or self._structure.history_grew()):
+                (served.unheld(self._window.seq) or self._structure.history_grew() or
+                 not self._structure.carried_by(model)):
             with self._lock:
                 self._structure.reselect_soon()
             self._rebases.run()     # the saved prior and correction see the whole history

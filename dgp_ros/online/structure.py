@@ -169,6 +169,18 @@ class Structure:
         self._followed = t
         return self.refresh()
 
+    def carried_by(self, model) -> bool:
+        """
+        Tell whether ``model``'s prior is the parametric part selected last (True without one).
+
+        A re-selection for the answers before a model (``_auto_prior``) or between rebases
+        names a structure on /diagnostics that the served model takes only at its next rebase:
+        a save in between must not write the older one.
+        """
+        if not self.auto or self._param is None or model is None:
+            return True
+        return model.mean_.to_dict() == self.frozen_prior().to_dict()
+
     def frozen_prior(self):
         """Return the parametric part as the D-GP's frozen prior mean (``friction_mean``)."""
         return self._param.friction_mean().fit(None, None)
