@@ -189,7 +189,8 @@ def _friction_diag(a: np.ndarray, coef: np.ndarray, eps: np.ndarray,
     ``m_d`` of smoothed Coulomb + viscous + Stribeck friction at speeds ``a = |v|`` (..., N).
 
     ``m_d(a) = F_v + sum_k F_k t(a, eps_k) + sum_s S_s t(a, eps_S) exp(-(a / vs_s)^2)`` with
-    ``t(a, e) = tanh(a / e) / a``. coef (N, 1 + K + S): ``[F_v, F_1..F_K, S_1..S_S]``; eps
+    ``t(a, e) = tanh(a / e) / a``. coef (N, 1 + K + S): ``[F_v, F_1..F_K, S_1..S_S]`` (or
+    (..., N, 1 + K + S): a joint's coefficients per query); eps
     (K + 1,) or (N, K + 1): the Coulomb smoothing velocities, then the Stribeck one ``eps_S``;
     vs (S,) or (N, S): the Stribeck velocities. Every ``t`` comes from one vectorized call (the
     message path evaluates this for every answer); the terms are added one at a time in this
@@ -197,17 +198,17 @@ def _friction_diag(a: np.ndarray, coef: np.ndarray, eps: np.ndarray,
     """
     K = eps.shape[-1] - 1
     S = vs.shape[-1]
-    out = np.zeros_like(a) + coef[:, 0]
+    out = np.zeros_like(a) + coef[..., 0]
     if K == 0 and not S:
         return out
     T = _tanh_over(a[..., None], eps)                                 # (..., N, K + 1)
     for k in range(K):
-        out += coef[:, 1 + k] * T[..., k]
+        out += coef[..., 1 + k] * T[..., k]
     if S:
         t = T[..., K]
         G = np.exp(-(a[..., None] / vs) ** 2)                           # (..., N, S)
         for s in range(S):
-            out += coef[:, 1 + K + s] * t * G[..., s]
+            out += coef[..., 1 + K + s] * t * G[..., s]
     return out
 
 
@@ -378,10 +379,11 @@ class BasisFrictionMean(_SpeedDiag):
 
     def diag(self, Qd):
         a = np.abs(Qd)
-        d = self._diag_at(a)
         if self.coef_neg is None:
-            return d
-        return np.where(np.asarray(Qd) < 0.0, self._diag_at(a, self.coef_neg), d)
+            return self._diag_at(a)
+        # each query's coefficients by its direction, one pass (the message path's cost)
+        return self._diag_at(a, np.where((np.asarray(Qd) < 0.0)[..., None], self.coef_neg,
+                                         self.coef))
 
     def diag_bounds(self, lo, hi):
         if self.coef_neg is None:
