@@ -92,7 +92,8 @@ def answer_cost() -> dict:
     Time one message's answer (the message path's lean pass, ``online.plan.AnswerPlan``).
 
     A Diag-D-GP of 7 joints at the node's buffer (200 samples), its prior the frozen friction
-    alone, and the same with elements from every sample on all 7 joints: us per answer.
+    alone, and the same with elements from every sample on all 7 joints, each with symmetric and
+    with asymmetric friction (a level per direction on every joint): us per answer.
     """
     from dgp_ros.gp import DiagDGP
     from dgp_ros.gp.joint_element import JointElementMean, M_BASIS, VelocityBasis
@@ -105,10 +106,15 @@ def answer_cost() -> dict:
     base = BasisFrictionMean(np.abs(rng.normal(0.0, 0.2, (N, F))), FRICTION_EPS, EPS_S,
                              STRIBECK_VS)
     W = rng.normal(0.0, 0.1, (N, M_BASIS)) / np.arange(1, M_BASIS + 1)
+    asym = BasisFrictionMean(base.coef, FRICTION_EPS, EPS_S, STRIBECK_VS,
+                             coef_neg=np.abs(rng.normal(0.0, 0.2, (N, F))))
     out = {}
     for label, prior in (('parametric prior', base),
                          ('with elements on 7 joints',
-                          JointElementMean(base, VelocityBasis(np.full(N, 2.0)), W))):
+                          JointElementMean(base, VelocityBasis(np.full(N, 2.0)), W)),
+                         ('asymmetric parametric prior (7 joints)', asym),
+                         ('asymmetric, with elements on 7 joints',
+                          JointElementMean(asym, VelocityBasis(np.full(N, 2.0)), W))):
         m = DiagDGP(prior=prior, n_restarts=0).fit(Qd, Tau)
         plan = AnswerPlan(m)
         q = Qd[:1] * 1.1

@@ -376,13 +376,16 @@ class LongHistory:
         across = self._across((family, True, cons), (family, False, cons))
         if across is None:
             return forward
+        # no worse on the newest blocks (equal where the offset was no part of any fold)
         return forward | ((across[0] < (1.0 - JOINT_OFFSET_MARGIN) * across[1]) &
-                          (with_ <= without))
+                          (with_ <= (1.0 + 1e-9) * without))
 
     def _across(self, *cands) -> Optional[List[np.ndarray]]:
         """
-        Per candidate, its squared error per joint fitted on each half of the run and scored
-        on the other (N,); None while a half holds fewer than ``MIN_HALF_SAMPLES``.
+        Return each candidate's squared error per joint across the halves of the run, (N,).
+
+        Fitted on each half and scored on the other; None while a half holds fewer than
+        ``MIN_HALF_SAMPLES`` samples.
         """
         halves = self.element.halves
         if min(h.n for h in halves) < MIN_HALF_SAMPLES:

@@ -114,3 +114,27 @@ def test_no_asymmetry_where_friction_is_symmetric_or_the_run_is_short(monkeypatc
     assert not np.any(_select(*short).asymmetric)
     monkeypatch.setattr(history, 'MIN_HALF_SAMPLES', 0)
     assert list(np.flatnonzero(_select(*short).asymmetric)) == [0]
+
+
+def test_an_offset_the_newest_blocks_cannot_see_is_kept_from_the_halves(monkeypatch):
+    """
+    Keep an offset by the newest blocks alone, or across the halves.
+
+    Across the halves only where the newest blocks are no worse (equal: the offset was no part
+    of any forward fold).
+    """
+    h = LongHistory(2, None, 'friction', offsets=True)
+    best = ('friction', False, False)
+    same = {('friction', True, False): np.array([1.0, 1.0]),
+            ('friction', False, False): np.array([1.0, 1.0])}
+    monkeypatch.setattr(LongHistory, '_across', lambda self, *c: None)
+    assert not h._joint_offsets(same, best).any()
+    monkeypatch.setattr(LongHistory, '_across',
+                        lambda self, *c: [np.array([0.5, 0.9]), np.array([1.0, 1.0])])
+    assert list(h._joint_offsets(same, best)) == [True, False]
+    worse = dict(same)
+    worse[('friction', True, False)] = np.array([1.2, 1.0])
+    assert not h._joint_offsets(worse, best).any()
+    ahead = dict(same)
+    ahead[('friction', True, False)] = np.array([1.0, 0.6])          # the newest blocks: joint 1
+    assert list(h._joint_offsets(ahead, best)) == [True, True]
