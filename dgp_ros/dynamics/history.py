@@ -17,9 +17,10 @@ the block, with the columns that are applied (a correction's training-only colum
 score is the mean over joints of the pooled squared error over the residual's variance. Offsets
 need a clear win (they drift with the pose on a real arm: learned on one part of a motion they are
 wrong on the next, and adjacent blocks cannot show that), and the simplest structure close to the
-best is taken. Offsets are then kept joint by joint: a joint keeps its offset only where it cuts
-that joint's own score by :data:`JOINT_OFFSET_MARGIN` (a real UR10's wrist 2 carries a 2.4 N m
-offset that no other joint has: without it its held-out NMSE is 0.10, with it 0.016).
+best is taken. Offsets are then kept joint by joint (:mod:`~.joint_choice`): a joint keeps its
+offset only where it cuts that joint's own score clearly (a real UR10's wrist 2 carries a 2.4 N m
+offset that no other joint has: without it its held-out NMSE is 0.10, with it 0.016), and on an
+arm a joint's friction may get a level per direction of motion by the same kind of rule.
 
 Beside the whole history it keeps recent memories, in which a block's weight halves with every
 :data:`HALF_LIVES_S` seconds of learning that follow it. Where the chosen structure fitted on
@@ -35,10 +36,11 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from dgp_ros.gp.joint_element import ElementFit, M_BASIS, MIN_HALF_SAMPLES
+from dgp_ros.gp.joint_element import ElementFit, M_BASIS
 
 from .coupling_track import CONFIRM_S, COUPLING_RIDGE, COUPLING_RIDGES, CouplingTrack
 from .element_track import ElementTrack
+from .joint_choice import JointChoice
 from .layout import Unknowns
 from .parametric import F, FAMILIES, friction_columns, ParametricFit
 from .statistics import Stats
@@ -54,24 +56,18 @@ MIN_TRAIN_FRACTION = 0.4
 OFFSET_MARGIN = 0.1
 #: the simplest structure within this fraction of the best CV score is chosen
 SIMPLER_MARGIN = 0.05
-#: a joint keeps its offset only where it cuts that joint's own CV score by this fraction (one
-#: joint's score is noisier than the mean over joints that ``OFFSET_MARGIN`` judges)
-JOINT_OFFSET_MARGIN = 0.3
 #: recent memories: a block's weight halves with every this many seconds of learning time
 #: (blocks of data) that follow it (friction that drifts: a gearbox warming up, wear); the
 #: cross-validation chooses among them and the whole history
 HALF_LIVES_S = (10.0, 30.0, 90.0)
 #: a recent memory serves where it cuts the chosen structure's CV score by this fraction
 RECENT_MARGIN = 0.3
-#: a joint's friction gets a level per direction only where two halves of the run differ on
-#: that part by less than this times the part (they agree on its sign and size)
-ASYM_AGREEMENT = 1.0
 #: where couplings serve, the friction family serving is kept unless another's CV score is
 #: lower by more than this fraction
 SWITCH_MARGIN = 0.1
 
 
-class LongHistory:
+class LongHistory(JointChoice):
     """
     Sufficient statistics of the learned history and the structure selection (module docstring).
 
@@ -93,11 +89,15 @@ class LongHistory:
         Whether velocities that never near zero carry couplings (``gp.coupled``;
         :mod:`~dgp_ros.dynamics.coupling_track`): a system that is not an arm. Not with
         ``elements``.
+    asymmetric : bool, optional
+        Whether a joint's friction may have a level per direction of motion (``layout``): an
+        arm's geared joints. None: as ``elements``.
 
     """
 
     def __init__(self, N: int, basis=None, default_family: str = 'friction',
-                 offsets: bool = True, elements: bool = True, couplings: bool = False):
+                 offsets: bool = True, elements: bool = True, couplings: bool = False,
+                 asymmetric: Optional[bool] = None):
         if couplings and elements:
             raise ValueError('long history: couplings and elements are for different systems')
         self.N = int(N)
@@ -106,7 +106,11 @@ class LongHistory:
         self.coupling = CouplingTrack(self.N) if couplings else None
         self.K = 0 if self.coupling is None else self.coupling.K
         self.ridge = COUPLING_RIDGE             # the couplings' ridge (CV chooses among RIDGES)
-        self.L = 2 * F + 1 + self.C + self.K
+        #: per-direction friction (the friction columns' even twins): an arm's, whose geared
+        #: joints differ between their directions (None: with the elements)
+        self.asymmetric = bool(elements if asymmetric is None else asymmetric)
+        self.FE = 2 * F if self.asymmetric else F
+        self.L = self.FE + 1 + self.C + self.K
         #: the statistics' columns: the parametric ones (friction, offset, correction,
         #: couplings), then the element's (module docstring)
         self.Lx = self.L + (M_BASIS if elements else 0)
@@ -125,7 +129,7 @@ class LongHistory:
 
     def _layout(self) -> None:
         """Lay out the unknowns: friction per joint, offsets, the shared correction, couplings."""
-        self.unknowns = Unknowns(self.N, self.C, self.K)
+        self.unknowns = Unknowns(self.N, self.C, self.K, self.asymmetric)
         self.P = self.unknowns.P
         self._idx = self.unknowns.idx
 
@@ -138,7 +142,7 @@ class LongHistory:
         correction from the samples it keeps (None without a basis).
         """
         qd = np.asarray(qd, float)
-        Ft = friction_columns(qd)                              # (N, F)
+        Ft = friction_columns(qd)[:, :self.FE]                 # (N, FE)
         one = np.ones((self.N, 1))
         Yt = Yd = None
         if self.basis is not None:
@@ -178,7 +182,7 @@ class LongHistory:
 
     def _drop_columns(self, idx: np.ndarray) -> None:
         """Delete coupling features ``idx`` (of the K) from every statistics block (exact)."""
-        cols = 2 * F + 1 + self.C + idx
+        cols = self.FE + 1 + self.C + idx
         for st in [self._older, self._cur, *self._recent, *self._blocks, *self.element.halves]:
             st.drop(cols)
         self.K -= idx.size
@@ -357,85 +361,6 @@ class LongHistory:
         close = [c for c, v in pool.items() if v <= (1.0 + SIMPLER_MARGIN) * top]
         return min(close, key=lambda c: (int(self._mask(*c).sum()), pool[c]))
 
-    def _joint_offsets(self, per_joint: dict, best: tuple):
-        """
-        Return which joints of the chosen structure keep an offset, (N,) bools (module doc).
-
-        A joint keeps one where the structure with offsets scores below
-        (1 - JOINT_OFFSET_MARGIN) x the same structure's score without them, on that joint: on
-        the newest blocks, or across the two halves of the run (each fitted on one half and
-        scored on the other: the whole run's evidence, where the newest blocks may hold the
-        joint moving one way only) and no worse on the newest blocks.
-        """
-        family, _, cons = best
-        with_ = per_joint.get((family, True, cons))
-        without = per_joint.get((family, False, cons))
-        if with_ is None or without is None:
-            return np.zeros(self.N, bool)
-        forward = with_ < (1.0 - JOINT_OFFSET_MARGIN) * without
-        across = self._across((family, True, cons), (family, False, cons))
-        if across is None:
-            return forward
-        # no worse on the newest blocks (equal where the offset was no part of any fold)
-        return forward | ((across[0] < (1.0 - JOINT_OFFSET_MARGIN) * across[1]) &
-                          (with_ <= (1.0 + 1e-9) * without))
-
-    def _across(self, *cands) -> Optional[List[np.ndarray]]:
-        """
-        Return each candidate's squared error per joint across the halves of the run, (N,).
-
-        Fitted on each half and scored on the other; None while a half holds fewer than
-        ``MIN_HALF_SAMPLES`` samples.
-        """
-        halves = self.element.halves
-        if min(h.n for h in halves) < MIN_HALF_SAMPLES:
-            return None
-        G = [self._global(h) for h in halves]
-        out = []
-        for cand in cands:
-            m = self._mask(*cand)
-            out.append(sum(self._sse(halves[1 - k], self._solve(*G[k], m, halves[k].n))
-                           for k in (0, 1)))
-        return out
-
-    def _joint_asymmetry(self, best: tuple, folds: list, total: Stats) -> np.ndarray:
-        """
-        Return which joints of the chosen structure get a friction per direction, (N,) bools.
-
-        Like an offset (with which a direction's extra level is confounded on a joint that moved
-        mostly one way), an extra part of one joint needs a clear win on that joint's own noisy
-        score: the structure with every joint asymmetric must score below
-        (1 - JOINT_OFFSET_MARGIN) x the symmetric one on that joint and lower on each scored
-        block. And the two interleaved halves of the run, each of at least the element's
-        ``MIN_HALF_SAMPLES``, must differ on it by less than ``ASYM_AGREEMENT`` times the part
-        itself: a level per direction learned on a short start, where the joint passed its poses
-        one way each, is the pose's load, not the direction's friction, and is wrong on the
-        next motion.
-        """
-        none = np.zeros(self.N, bool)
-        halves = self.element.halves
-        if not FAMILIES[best[0]] or min(h.n for h in halves) < MIN_HALF_SAMPLES:
-            return none
-        per = []
-        for asym in (False, True):
-            m = self._mask(*best[:3], asym)
-            per.append(np.array([self._sse(test, self._solve(G, b, m, n))
-                                 for (G, b), n, test in folds]))        # (folds, N)
-        win = (per[1].sum(axis=0) < (1.0 - JOINT_OFFSET_MARGIN) * per[0].sum(axis=0)) & \
-            np.all(per[1] < per[0], axis=0)
-        if not win.any():
-            return none
-        m = self._mask(*best[:3], True)
-        full = self._solve(*self._global(total), m, total.n)
-        th = [self._solve(*self._global(h), m, h.n) for h in halves]
-        out = none.copy()
-        for j in np.flatnonzero(win):
-            e = self._idx[j][F:2 * F]                   # the joint's even (asymmetric) part
-            G = total.Gt[j][F:2 * F, F:2 * F]
-            d, w = th[0][e] - th[1][e], full[e]
-            out[j] = d @ G @ d < ASYM_AGREEMENT ** 2 * max(w @ G @ w, 1e-300)
-        return out
-
     def fit(self, family: str, offsets, conservative: bool, asymmetric=False) -> ParametricFit:
         """Fit one given structure on the whole history."""
         return self._fit(self._total(self._blocks, True),
@@ -503,5 +428,5 @@ class LongHistory:
                 train = whole if memory < 0 else self._total(blocks[:i], False, memory)
                 th = self._solve(*self._global(train), mask, train.n)
                 folds.append((train, [th[idx] for idx in self._idx], block))
-        return self.element.fit(self.L, 2 * F, [theta[idx] for idx in self._idx], total,
+        return self.element.fit(self.L, self.FE, [theta[idx] for idx in self._idx], total,
                                 folds)

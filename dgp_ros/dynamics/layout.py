@@ -3,7 +3,8 @@ The parametric part's unknowns over all joints, and their bounded least-squares 
 
 The long history (:mod:`~.history`) keeps, per joint, the statistics of its local columns
 
-    [friction 2F (F odd, then the F even |col|), offset 1, correction C, couplings K]
+    [friction F odd (then, on an arm, their F even twins |col|), offset 1, correction C,
+     couplings K]
 
 (:mod:`~.parametric`); the unknowns of every joint are solved together because the correction
 of the rigid-body model is shared. :class:`Unknowns` lays them out, says which columns a
@@ -42,14 +43,19 @@ class Unknowns:
     its local statistics' columns.
     """
 
-    def __init__(self, N: int, C: int, K: int):
+    def __init__(self, N: int, C: int, K: int, even: bool = True):
         self.N, self.C, self.K = int(N), int(C), int(K)
-        N, FE = self.N, 2 * F
+        self.even = bool(even)
+        #: friction columns per joint: the odd ones, and with ``even`` their twins
+        self.FE = FE = 2 * F if self.even else F
+        N = self.N
         self.off0 = N * FE
         self.corr0 = self.off0 + N
         self.coup0 = self.corr0 + self.C
         self.P = self.coup0 + N * self.K
-        self.idx = [np.r_[np.arange(j * F, (j + 1) * F), N * F + np.arange(j * F, (j + 1) * F),
+        twins = (lambda j: N * F + np.arange(j * F, (j + 1) * F)) if self.even else \
+            (lambda j: np.zeros(0, int))
+        self.idx = [np.r_[np.arange(j * F, (j + 1) * F), twins(j),
                           self.off0 + j, self.corr0 + np.arange(self.C),
                           self.coup0 + j * self.K + np.arange(self.K)] for j in range(N)]
         #: the local column count of the parametric part
@@ -69,7 +75,7 @@ class Unknowns:
         asym = np.broadcast_to(np.asarray(asymmetric, bool), (self.N,))
         for j in range(self.N):
             m[self.idx[j][cols]] = True
-            if asym[j]:
+            if asym[j] and self.even:
                 m[self.idx[j][F + cols]] = True
             m[self.off0 + j] = offs[j]
         if conservative and self.C:
@@ -131,7 +137,7 @@ class Unknowns:
             return theta
         # an asymmetric pair (odd k, even k) solved as its positive and negative parts
         odd = idx[idx < self.N * F]
-        pairs = odd[np.isin(odd + self.N * F, idx)]
+        pairs = odd[np.isin(odd + self.N * F, idx)] if self.even else odd[:0]
         Gs, bs, T = G[np.ix_(idx, idx)].copy(), b[idx], None
         if pairs.size:
             T = np.eye(idx.size)
@@ -164,7 +170,7 @@ class Unknowns:
         """
         N = self.N
         a = theta[:N * F].reshape(N, F)
-        b = theta[N * F:2 * N * F].reshape(N, F)
+        b = theta[N * F:2 * N * F].reshape(N, F) if self.even else np.zeros((N, F))
         if not np.any(b):
             return np.maximum(a, 0.0), None
         return np.maximum(a + b, 0.0), np.maximum(a - b, 0.0)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dgp_ros.dynamics import history
+from dgp_ros.dynamics import joint_choice
 from dgp_ros.dynamics.history import LongHistory
 from dgp_ros.dynamics.layout import Unknowns
 from dgp_ros.dynamics.parametric import EPS_S, F, friction_columns, FRICTION_EPS, STRIBECK_VS
@@ -112,7 +112,7 @@ def test_no_asymmetry_where_friction_is_symmetric_or_the_run_is_short(monkeypatc
     # few samples to confirm it (with the halves' minimum at 0 it is chosen)
     short = _stream(9.0, True, hz=30.0)
     assert not np.any(_select(*short).asymmetric)
-    monkeypatch.setattr(history, 'MIN_HALF_SAMPLES', 0)
+    monkeypatch.setattr(joint_choice, 'MIN_HALF_SAMPLES', 0)
     assert list(np.flatnonzero(_select(*short).asymmetric)) == [0]
 
 
