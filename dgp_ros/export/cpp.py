@@ -27,14 +27,14 @@ PAD = 8
 
 
 def _prior_code(spec: Spec) -> str:
-    """``prior_diag`` for this prior (gp/means.py ``_friction_diag``; terms in its order)."""
+    """``prior_diag`` for this prior (``gp.friction_means._friction_diag``, terms in its order)."""
     p = spec.prior
     coef, eps, vs = p['coef'], p['eps'], p['vs']
     K, S = int(p['K']), vs.shape[1]
     el = p.get('element')
     neg = p.get('coef_neg')
     out = _const('PC', coef)
-    # an asymmetric prior: the coefficients of v < 0 are their own (gp/means.py)
+    # an asymmetric prior: the coefficients of v < 0 are their own (gp/friction_means.py)
     pc = 'PC[i]'
     if neg is not None:
         out += _const('PCN', neg)

@@ -48,7 +48,7 @@ DGP_EXPORT_INLINE void exp_floor(D& x, const D& zero) noexcept {
 }
 """)
 
-#: tanh(a / eps) / a, continuous at 0 (gp/means.py ``_tanh_over``)
+#: tanh(a / eps) / a, continuous at 0 (gp/friction_means.py ``_tanh_over``)
 TANH_OVER = Template(r"""
 inline double tanh_over(double a, double eps) noexcept {
   return a < 1e-6 * eps ? 1.0 / eps : std::tanh(a / eps) / a;

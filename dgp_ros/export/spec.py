@@ -118,7 +118,7 @@ def prove_as_node(model) -> str:
 
 def _prior(mean, N: int) -> dict:
     """
-    Return the prior's damping ``m_d`` in the general form of ``means._friction_diag``.
+    Return the prior's damping ``m_d`` in the general form of ``friction_means._friction_diag``.
 
     A prior with per-joint elements (``gp.joint_element.JointElementMean``) is its base's, with
     ``element``: the joints that carry one, their weights (n, M), velocity scales and sign

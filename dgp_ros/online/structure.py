@@ -94,7 +94,7 @@ class Structure:
             arm = self._inverse is not None
             self._history = LongHistory(N, basis, default, offsets=arm,
                                         elements=self._elements and arm,
-                                        couplings=self._couplings and not arm)
+                                        couplings=self._couplings and not arm, asymmetric=arm)
             h.correction_basis = '' if basis is None else basis.source
         try:
             return self._history.push(stamp, q, qd, qdd, r)

@@ -1,0 +1,82 @@
+"""
+The base of every prior mean of the damping force: ``m_tau(qd) = diag(m_d(qd)) qd``.
+
+:class:`PriorMean` says what a prior gives the GP and the proofs (its force, its diagonal, their
+bounds over boxes, its infimum) and how it is saved; :mod:`~.means` holds the simple priors and
+the registry, :mod:`~.friction_means` the friction families. Velocities ``Qd`` (k, N), forces
+(k, N), in model units.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ['PriorMean']
+
+
+class PriorMean:
+    """Base class. Subclasses set ``name`` and implement ``fit``, ``force``, ``diag``."""
+
+    name = ''
+    has_damping = True
+    #: the damping matrix is ``diag(m_d(qd))`` (every mean here; not ``gp.coupled``'s): what
+    #: the global certificates (``diag(m_inf) - B`` copositive) need
+    is_diagonal = True
+
+    def __init__(self, bias: bool = False):
+        self.bias_enabled = bool(bias)
+        self.bias = None          # (N,) after fit: zeros unless ``bias_enabled``
+
+    @property
+    def N(self) -> int:
+        return self.bias.size
+
+    def __call__(self, Qd: np.ndarray) -> np.ndarray:
+        """Return the prior of the measured force, damping part plus bias, (k, N)."""
+        return self.force(Qd) + self.bias
+
+    def force(self, Qd: np.ndarray) -> np.ndarray:
+        """Return the damping part ``diag(m_d(qd)) qd``, (k, N)."""
+        return self.diag(Qd) * Qd
+
+    def raw_force(self, Qd: np.ndarray) -> np.ndarray:
+        """Return the force the proofs bound (``matrix_bounds``); the force itself here."""
+        return self.force(Qd)
+
+    def diag(self, Qd: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def matrix(self, Qd: np.ndarray) -> np.ndarray:
+        """Return the prior's damping matrix ``M(qd)`` (k, N, N), ``force = M qd``."""
+        d = np.asarray(self.diag(Qd), float)
+        M = np.zeros(d.shape + (d.shape[-1],))
+        idx = np.arange(d.shape[-1])
+        M[..., idx, idx] = d
+        return M
+
+    def diag_bounds(self, lo: np.ndarray, hi: np.ndarray):
+        """Range ``(dlo, dhi)`` of ``m_d`` over boxes ``[lo, hi]`` (B, N) each; (B, N) each."""
+        raise NotImplementedError  # pragma: no cover
+
+    def matrix_bounds(self, lo: np.ndarray, hi: np.ndarray):
+        """Range of ``M(qd)`` over boxes ``[lo, hi]`` (B, N): (B, N, N) each (a proof's input)."""
+        dlo, dhi = self.diag_bounds(lo, hi)
+        idx = np.arange(dlo.shape[-1])
+        Mlo, Mhi = np.zeros(dlo.shape + (dlo.shape[-1],)), np.zeros(dhi.shape + (dhi.shape[-1],))
+        Mlo[..., idx, idx], Mhi[..., idx, idx] = dlo, dhi
+        return Mlo, Mhi
+
+    def diag_inf(self) -> np.ndarray:
+        """``inf_qd m_d(qd)`` per joint, (N,): the margin a global certificate may use."""
+        raise NotImplementedError  # pragma: no cover
+
+    def diag_ref(self) -> np.ndarray:
+        """Return a typical ``m_d`` per joint, (N,), to normalize certificate margins."""
+        return self.diag_inf()
+
+    # persistence: plain numbers and arrays only
+    def to_dict(self) -> dict:
+        return {'name': self.name, 'bias_enabled': self.bias_enabled,
+                'bias': np.asarray(self.bias, float).tolist(), **self._params()}
+
+    def _params(self) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
