@@ -291,6 +291,8 @@ def check(label: str, r: dict) -> list:
     if r['negative_power'] or r['saved_negative_power']:
         bad.append(f'{label}: negative power {r["negative_power"]} published, '
                    f'{r["saved_negative_power"]} saved')
+    if 'does not behave as joint torque' in r['status'][1]:     # torques, never a false alarm
+        bad.append(f'{label}: {r["status"][1]}')
     return bad
 
 

@@ -40,6 +40,7 @@ def test_the_check_fails_beyond_a_limit():
     held = ok['held'].copy()
     held[2] = 0.04
     for bad in ({'mean': 0.03}, {'held': held}, {'live': np.r_[np.full(5, 0.1), 1.5]},
-                {'saved_negative_power': 1}, {'trained': False}):
+                {'saved_negative_power': 1}, {'trained': False},
+                {'status': (1, 'the effort does not behave as joint torque on j2: ...')}):
         assert robot_family.check(label, dict(ok, **bad)), bad
     assert robot_family.check('real Panda at 30 Hz', dict(ok, mean=0.031))

@@ -92,6 +92,11 @@ PARAMS = {p.name: p for p in (
               '(out_of_range)', low=1e-9, high=1e6),
     ParamSpec('max_abs_effort', 'float', 1.0e8, '|effort| above this: message rejected '
               '(out_of_range)', low=1e-9, high=1e12),
+    ParamSpec('effort_scale', 'float[]', [], 'joint torque per unit of the published effort '
+              '(N m per unit: for a motor current, torque constant x gear ratio), one per joint '
+              'or one for all; a negative entry flips a sign convention ([] = the effort is '
+              'joint torque in N m); a change resets the learner', low=-1e6, high=1e6,
+              max_len=64),
     ParamSpec('inverse_dynamics', 'str', '', 'rigid-body model subtracted from the effort before '
               "learning: '' (the effort already is the damping force), 'urdf' (pinocchio, from "
               "robot_description or urdf_file) or 'python:<module>:<function>' "
@@ -146,6 +151,7 @@ class EstimatorConfig:
     refit_mode: str = PARAMS['refit_mode'].default
     max_abs_velocity: float = PARAMS['max_abs_velocity'].default
     max_abs_effort: float = PARAMS['max_abs_effort'].default
+    effort_scale: List[float] = field(default_factory=list)
     inverse_dynamics: str = PARAMS['inverse_dynamics'].default
     robot_description: str = PARAMS['robot_description'].default
     urdf_file: str = PARAMS['urdf_file'].default
@@ -170,6 +176,12 @@ class EstimatorConfig:
         if self.joints and self.selection_scale and \
                 len(self.selection_scale) != len(self.joints):
             raise ValueError(f'selection_scale={self.selection_scale!r}: needs one entry per '
+                             f'joint ({len(self.joints)})')
+        if any(x == 0.0 for x in self.effort_scale):
+            raise ValueError(f'effort_scale={self.effort_scale!r}: a zero would erase the '
+                             'effort (torque per effort unit, e.g. 12.0 for a current)')
+        if self.joints and len(self.effort_scale) not in (0, 1, len(self.joints)):
+            raise ValueError(f'effort_scale={self.effort_scale!r}: needs one entry, or one per '
                              f'joint ({len(self.joints)})')
         od = self.operating_domain
         if od:
@@ -225,6 +237,9 @@ class EstimatorConfig:
         if self.selection_scale and len(self.selection_scale) != N:
             raise ValueError(f'selection_scale has {len(self.selection_scale)} entries, the '
                              f'{N} joints need {N}')
+        if len(self.effort_scale) not in (0, 1, N):
+            raise ValueError(f'effort_scale has {len(self.effort_scale)} entries, the {N} '
+                             f'joints need 1 or {N}')
 
     @classmethod
     def from_dict(cls, d: dict) -> 'EstimatorConfig':
@@ -235,7 +250,7 @@ class EstimatorConfig:
             raise ValueError(f'unknown estimator parameter(s): {", ".join(sorted(unknown))} '
                              f'(known: {", ".join(sorted(names))})')
         kw = dict(d)
-        for k in ('joints', 'selection_scale', 'operating_domain'):
+        for k in ('joints', 'selection_scale', 'effort_scale', 'operating_domain'):
             if k in kw and kw[k] is not None and not isinstance(kw[k], (str, bytes)):
                 try:
                     kw[k] = list(kw[k])

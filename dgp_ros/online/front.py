@@ -9,7 +9,9 @@ A part of :class:`~dgp_ros.online.learner.Learner`, called under its lock. It ow
 * with ``inverse_dynamics``: the residual front end (``dynamics.FrictionResidual``): every
   message enters the acceleration filter, and the friction residual ``effort - tau_rb(q, qd,
   qdd)`` of a sample the rate limit let through is complete half a filter window later. A plugin
-  that fails is counted, its message still answered.
+  that fails is counted, its message still answered;
+* with ``inverse_dynamics``: the check that the effort behaves as joint torque against
+  ``tau_rb`` (``dynamics.effort_check``), fed with every completed residual sample.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from dgp_ros.dynamics import AccelFilter, FrictionResidual, make_inverse_dynamics
+from dgp_ros.dynamics.effort_check import EffortCheck
 
 __all__ = ['Front']
 
@@ -34,6 +37,8 @@ class Front:
         self.inverse = inverse
         self.residual = FrictionResidual(
             inverse, AccelFilter(config.accel_half_window_s) if inverse is not None else None)
+        #: does the effort behave as torque against the rigid-body model (None without one)
+        self.effort = EffortCheck() if inverse is not None else None
         self._last_stamp: Optional[float] = None    # the last sample offered for learning
         self._thin_i = 0                # samples given while thinning (``thin``)
 
@@ -79,6 +84,9 @@ class Front:
             return False, [], []
         take = [(r.stamp_s, r.qd, r.residual, r.q, r.qdd) for r in done
                 if np.all(np.isfinite(r.residual))]
+        for r in done:
+            if np.all(np.isfinite(r.residual)):
+                self.effort.learn_one(r.tau_rb, r.effort)
         return want, done, take
 
     def thin(self, take: List[tuple], k: int, health) -> Tuple[List[tuple], List[tuple]]:

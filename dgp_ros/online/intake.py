@@ -7,7 +7,9 @@ and the order of the last names seen, and checks one message (``check``) or a ba
 messages given as arrays (``check_batch``: a driver sends the same names and lengths in every
 message, so a batch is a few arrays) by the same rules, giving the same rejection reasons
 (``health.REJECT_REASONS``) in the same order. It counts nothing: the estimator's ``Health``
-does, in message order.
+does, in message order. An accepted message's effort leaves as joint torque: times
+``effort_scale`` where the driver publishes another unit (a motor current); the range check
+reads the effort as published.
 """
 from __future__ import annotations
 
@@ -127,6 +129,8 @@ class Intake:
             return 'non_finite'
         if (np.abs(v) > cfg.max_abs_velocity).any() or (np.abs(e) > cfg.max_abs_effort).any():
             return 'out_of_range'
+        if cfg.effort_scale:
+            e = e * _scale(cfg)
         return names, v, e, p
 
     # ------------------------------------------------------------------ a batch
@@ -167,7 +171,7 @@ class Intake:
         if np.abs(velocity).max() <= cfg.max_abs_velocity and \
                 np.abs(effort).max() <= cfg.max_abs_effort and sec.min() >= 0 and \
                 (p is None or np.isfinite(p).all()):
-            return None, stamps, (velocity, effort, p)
+            return None, stamps, (velocity, _torque(effort, cfg), p)
         fine = (np.abs(velocity) <= cfg.max_abs_velocity).all(axis=1) & \
             (np.abs(effort) <= cfg.max_abs_effort).all(axis=1)
         if p is not None:
@@ -181,7 +185,8 @@ class Intake:
         bad_stamp = ~(np.isfinite(stamps) & (stamps >= 0.0))
         reasons[(reasons == '') & bad_stamp] = 'bad_stamp'
         ok = reasons == ''
-        return reasons, stamps, (velocity[ok], effort[ok], None if p is None else p[ok])
+        return reasons, stamps, (velocity[ok], _torque(effort[ok], cfg),
+                                 None if p is None else p[ok])
 
     def _content(self, names: tuple, position):
         """Return the reason every message is rejected for, or the joint order (None: as is)."""
@@ -207,3 +212,13 @@ class Intake:
             same = idx.size == len(names) and bool((idx == np.arange(idx.size)).all())
             cached = self._order = cached[:2] + (None if same else idx,)
         return cached[2]
+
+
+def _scale(cfg) -> np.ndarray:
+    """Return ``effort_scale`` as an array: (1,) for every joint, or (N,) per joint."""
+    return np.asarray(cfg.effort_scale, float)
+
+
+def _torque(effort: np.ndarray, cfg) -> np.ndarray:
+    """Return the accepted efforts (k, N) as joint torque (``effort_scale``; as is without)."""
+    return effort * _scale(cfg) if cfg.effort_scale else effort

@@ -46,9 +46,9 @@ __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
 #: structural fields: changing one at run time drops the model and refits
 STRUCTURAL = ('model', 'passivity', 'elements', 'prior', 'history_elements', 'bias',
               'buffer_size', 'buffer_policy', 'joints', 'operating_domain', 'inverse_dynamics',
-              'robot_description', 'urdf_file', 'accel_half_window_s')
-#: fields of the front end: changing one resets the learner
-FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints')
+              'robot_description', 'urdf_file', 'accel_half_window_s', 'effort_scale')
+#: fields of the front end: changing one resets the learner (what it learned is of other data)
+FRONT_END = ('inverse_dynamics', 'robot_description', 'urdf_file', 'joints', 'effort_scale')
 
 
 class Learner:

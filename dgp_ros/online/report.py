@@ -58,11 +58,21 @@ def learner_status(L) -> dict:
         'correction_basis': h.correction_basis,
         'corrections_refused': h.corrections_refused,
         'offsets': L.structure.offsets(),
+        # each joint's effort against the rigid-body torque (1: torque in N m; None: not judged)
+        'effort_gain': _gains(L.front.effort),
         'warnings': warnings(L),
     }
     d.update(h.counters())
     d.update(L.grounds.summary())
     return d
+
+
+def _gains(check):
+    """Return the effort's gain on ``tau_rb`` per judged joint (None elsewhere), or None."""
+    if check is None or check.n == 0:
+        return None
+    gain, judged = check.gains()[0], check.judged()
+    return [round(float(g), 3) if ok else None for g, ok in zip(gain, judged)]
 
 
 def _num(x):
@@ -87,6 +97,10 @@ def warnings(L) -> List[str]:
     if stalled is not None:
         out.append(f'learning stalled: no sample learned for {stalled:.0f} s while the '
                    f'velocities moved (check selection_min_distance / selection_scale)')
+    if L.front.effort is not None:
+        said = L.front.effort.warning(L.structure_names() or [], cfg.effort_scale)
+        if said:
+            out.append(said)
     frac = L.window.negative_power_fraction()
     if frac is not None and frac > cfg.negative_power_warn_fraction:
         what = 'effort - inverse dynamics' if inverse is not None else 'effort'

@@ -422,4 +422,5 @@ def test_yaml_defaults_match_config():
                     **{k: p.default for k, p in NODE_PARAMS.items()})
     for k, v in params.items():
         assert v == defaults[k], (k, v, defaults[k])
-    assert set(defaults) - set(params) == {'joints', 'selection_scale', 'operating_domain'}
+    assert set(defaults) - set(params) == {'joints', 'selection_scale', 'effort_scale',
+                                           'operating_domain'}
