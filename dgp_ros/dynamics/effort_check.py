@@ -9,8 +9,10 @@ An effort that is no torque in N m shows there first: a motor current follows it
 unless ``use_currents_as_efforts`` is false), a reversed sign convention at -1, a joint order
 that differs from the URDF's at anything. :class:`EffortCheck` keeps per joint the running
 regression of the effort on ``tau_rb`` (with an intercept: offsets) and judges only joints the
-model explains (correlation at least :data:`MIN_CORRELATION`, :data:`MIN_SAMPLES` samples):
-on a joint whose friction dominates the model explains nothing and says nothing of the unit.
+model explains (correlation at least :data:`MIN_CORRELATION`, after :data:`MIN_SAMPLES` samples
+over :data:`MIN_SPAN_S` s): on a joint whose friction dominates the model explains nothing and
+says nothing of the unit, and the first second of a motion that starts from rest can show a
+torque's gain near 3 (a simulated Panda's shoulder, 1.75 s in).
 
 Pure numpy; O(N) memory and per sample. A part of the learner's front end (``online.front``).
 """
@@ -20,38 +22,42 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 
-__all__ = ['EffortCheck', 'MIN_SAMPLES', 'MIN_CORRELATION', 'GAIN_RANGE']
+__all__ = ['EffortCheck', 'MIN_SAMPLES', 'MIN_SPAN_S', 'MIN_CORRELATION', 'GAIN_RANGE']
 
-#: samples before a joint is judged (about 2 s at the learner's default 100 samples a second)
+#: samples, and stamp time they span (s), before a joint is judged
 MIN_SAMPLES = 150
+MIN_SPAN_S = 2.5
 #: a joint is judged only where the effort correlates with ``tau_rb`` at least this much
 MIN_CORRELATION = 0.8
 #: gains of the effort on ``tau_rb`` that torque in N m may show (an identified model's masses
-#: are off by tens of percent, a payload adds more)
-GAIN_RANGE = (0.5, 2.0)
+#: are off by tens of percent, a payload adds more; a current is at about 0.1, a sign at -1)
+GAIN_RANGE = (1.0 / 3.0, 3.0)
 
 
 class EffortCheck:
     """
     Running regression of each joint's effort on the rigid-body torque (module docstring).
 
-    ``learn_one(tau_rb, effort)`` takes one sample, (N,) each, in N m; ``gains()`` returns the
-    gain and correlation per joint; ``warning(names, scale)`` the sentence a user acts on, ''
-    when every judged joint behaves as torque.
+    ``learn_one(stamp, tau_rb, effort)`` takes one sample at ``stamp`` (s), (N,) each, in N m;
+    ``gains()`` returns the gain and correlation per joint; ``warning(names, scale)`` the
+    sentence a user acts on, '' when every judged joint behaves as torque.
     """
 
     def __init__(self):
         self.n = 0
+        self._span = (0.0, 0.0)                        # the first and last stamps (s)
         self._origin: Optional[np.ndarray] = None      # (2, N): the first sample (stability)
         self._sums: Optional[np.ndarray] = None        # (5, N): x, y, xx, xy, yy about it
 
-    def learn_one(self, tau_rb: np.ndarray, effort: np.ndarray) -> None:
-        """Take one sample: the model's torque and the effort (N,) each, finite, in N m."""
+    def learn_one(self, stamp: float, tau_rb: np.ndarray, effort: np.ndarray) -> None:
+        """Take one sample at ``stamp`` (s): the model's torque and the effort (N,), in N m."""
         x, y = np.asarray(tau_rb, float), np.asarray(effort, float)
         if self._origin is None or self._origin.shape[1] != x.size:
             self._origin = np.stack([x, y])
             self._sums = np.zeros((5, x.size))
             self.n = 0
+            self._span = (float(stamp), float(stamp))
+        self._span = (self._span[0], max(self._span[1], float(stamp)))
         dx, dy = x - self._origin[0], y - self._origin[1]
         self._sums += (dx, dy, dx * dx, dx * dy, dy * dy)
         self.n += 1
@@ -60,9 +66,11 @@ class EffortCheck:
         """
         Return (gain, correlation), (N,) each: the effort's regression slope on ``tau_rb``.
 
-        NaN before :data:`MIN_SAMPLES` samples, and where ``tau_rb`` or the effort did not vary.
+        NaN before :data:`MIN_SAMPLES` samples over :data:`MIN_SPAN_S` s, and where ``tau_rb``
+        or the effort did not vary.
         """
-        if self._sums is None or self.n < MIN_SAMPLES:
+        if self._sums is None or self.n < MIN_SAMPLES or \
+                self._span[1] - self._span[0] < MIN_SPAN_S:
             N = 0 if self._sums is None else self._sums.shape[1]
             return np.full(N, np.nan), np.full(N, np.nan)
         sx, sy, sxx, sxy, syy = self._sums / self.n

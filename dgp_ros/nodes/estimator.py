@@ -54,6 +54,7 @@ from dgp_ros.nodes.runtime import (check_unknown_overrides, declare_parameters, 
                                    reject_unknown, run, set_batch_handler)
 from dgp_ros.online import ERROR, EstimatorConfig, OK, OnlineEstimator, WARN
 from dgp_ros.online.config import NODE_PARAMS, PARAMS
+from dgp_ros.online.memtrace import start_from_env as trace_memory
 
 NODE_NAME = 'dgp_estimator'
 _CONFIG_FIELDS = {f.name for f in dataclasses.fields(EstimatorConfig)}
@@ -419,6 +420,7 @@ SWITCH_INTERVAL_S = 0.0005
 
 def main(args=None) -> int:
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    trace_memory('node')         # a soak's tracemalloc (DGP_TRACEMALLOC), else none
     return run('estimator', lambda ctx: EstimatorNode(context=ctx), HELP, args)
 
 

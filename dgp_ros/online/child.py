@@ -22,6 +22,7 @@ import numpy as np
 from .config import EstimatorConfig
 from .grounds import GAINS
 from .learner import Learner
+from .memtrace import start_from_env as trace_memory
 from .plan import PlanCache
 from .ring import SampleRing
 
@@ -388,6 +389,7 @@ def child_main(cfg: dict, cmd, out, lock, ring_info, init, nice: int, variance: 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     got = lower_priority(sched, nice)
+    trace_memory('learner')      # a soak's tracemalloc (DGP_TRACEMALLOC), else none
     LearnerLoop(cfg, cmd, out, lock, ring_info, init, variance, residuals, got).run()
 
 

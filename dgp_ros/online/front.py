@@ -86,7 +86,7 @@ class Front:
                 if np.all(np.isfinite(r.residual))]
         for r in done:
             if np.all(np.isfinite(r.residual)):
-                self.effort.learn_one(r.tau_rb, r.effort)
+                self.effort.learn_one(r.stamp_s, r.tau_rb, r.effort)
         return want, done, take
 
     def thin(self, take: List[tuple], k: int, health) -> Tuple[List[tuple], List[tuple]]:

@@ -1,0 +1,385 @@
+#!/usr/bin/env python3
+"""
+An hour at 1 kHz over DDS: the node as a user starts it, its memory against time (issue 67).
+
+Three processes besides this one, DDS isolated (a random ``ROS_DOMAIN_ID``, localhost only):
+
+* a player publishing a simulated Panda's raw ``/joint_states`` (7 joints and a finger joint,
+  stamps on the wall clock) at absolute deadlines, its 10 s task cycle built once and looped
+  for ``--duration`` s (a one-hour stream held in memory would itself be 3.6 million messages);
+* the ``estimator`` node as the README starts it on an arm (``inverse_dynamics=urdf``, the
+  URDF, ``joints``, ``model_path``; defaults otherwise), Ctrl-C at the end (it saves);
+* a listener keeping running statistics only (counts, an age histogram, the negative power,
+  the last /diagnostics), written every 10 s, so that its own memory stays flat.
+
+Every ``--sample-s`` (60; quick 5) this process reads the resident memory (VmRSS) of every
+process: the player, the listener, the node and its learner process (the fork server's child).
+With ``--tracemalloc`` the node and its learner also write tracemalloc's top growers every
+period (``dgp_ros.online.memtrace``); tracing slows every allocation, so the RSS figures of the
+section come from a run without it. Writes the section ``soak_live`` of docs/BENCHMARKS.md and
+``docs/bench/soak_memory.png``: RSS against time, the growth over the last 40 minutes (the last
+two thirds of shorter runs) per process, the answered share, the answers' age.
+
+    python bench/soak_live.py                 # one hour (about 62 min)
+    python bench/soak_live.py --quick         # 60 s
+    python bench/soak_live.py --duration 600 --tracemalloc
+"""
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import common as C  # noqa: E402
+from cpu_watch import descendants, proc_table  # noqa: E402
+
+from live_common import FINGER, stop_event, TOPIC_IN, TOPIC_OUT, write_json  # noqa: E402,I100
+
+SECTION = 'soak_live'
+TITLE = 'An hour at 1 kHz: memory against time'
+CYCLE_S = 10.0                      # the simulated arm's task cycle (s)
+#: the answers' age histogram: bin edges (ms)
+AGE_EDGES_MS = np.r_[0.0, np.geomspace(0.05, 2000.0, 60), np.inf]
+
+
+def _extra(p):
+    p.add_argument('--duration', type=float, default=3600.0, help='seconds of stream (quick 60)')
+    p.add_argument('--sample-s', type=float, default=60.0, help='RSS sampling period (quick 5)')
+    p.add_argument('--rate', type=float, default=1000.0, help='messages a second')
+    p.add_argument('--tracemalloc', action='store_true',
+                   help="the node's and learner's top growers each period (slower)")
+    p.add_argument('--keep', default='', help="keep every process's files in this directory")
+    p.add_argument('--role', default='', help=__import__('argparse').SUPPRESS)
+    p.add_argument('--file', default='', help=__import__('argparse').SUPPRESS)
+
+
+# ----------------------------------------------------------------------------- player
+def player(a) -> None:
+    stop = stop_event()
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import JointState
+    from array import array
+    from dgp_ros.dynamics import ARM_JOINTS, simulate_arm
+    names = list(ARM_JOINTS['panda']) + [FINGER]
+    d = simulate_arm('panda', CYCLE_S, rate_hz=a.rate, seed=7)
+    msgs = []
+    for q, v, e in zip(d['q'], d['qd'], d['effort']):
+        m = JointState()
+        m.name = names
+        m.position = array('d', np.r_[q, 0.02].tolist())
+        m.velocity = array('d', np.r_[v, 0.0].tolist())
+        m.effort = array('d', np.r_[e, 0.1].tolist())
+        msgs.append(m)
+    offs = d['t'] - d['t'][0]
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node('soak_player', context=ctx)
+    pub = node.create_publisher(JointState, TOPIC_IN,
+                                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    deadline = time.monotonic() + 90.0
+    while pub.get_subscription_count() < 2 and time.monotonic() < deadline and \
+            not stop.is_set():
+        time.sleep(0.05)
+    time.sleep(0.5)
+    t0_wall, t0_mono = time.time() + 0.05, time.monotonic() + 0.05
+    n, late_max, late_1ms = 0, 0.0, 0
+    while not stop.is_set():
+        k, i = divmod(n, len(msgs))
+        off = k * CYCLE_S + offs[i]
+        if off > a.duration:
+            break
+        dl = t0_mono + off
+        now = time.monotonic()
+        if dl > now:
+            time.sleep(dl - now)
+        stamp = t0_wall + off
+        m = msgs[i]
+        m.header.stamp.sec = int(stamp)
+        m.header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
+        m.header.frame_id = str(n)
+        pub.publish(m)
+        late = time.monotonic() - dl
+        late_max, late_1ms = max(late_max, late), late_1ms + int(late > 1e-3)
+        n += 1
+        if n % 10000 == 0:
+            write_json(a.file, {'published': n, 'late_max_ms': late_max * 1e3,
+                                'late_over_1ms': late_1ms, 'done': False})
+    write_json(a.file, {'published': n, 'late_max_ms': late_max * 1e3,
+                        'late_over_1ms': late_1ms, 'done': True})
+    node.destroy_node()
+    ctx.try_shutdown()
+
+
+# ----------------------------------------------------------------------------- listener
+def listener(a) -> None:
+    stop = stop_event()
+    import rclpy
+    from rclpy.qos import QoSProfile
+    from rclpy.serialization import deserialize_message
+    from rclpy.signals import SignalHandlerOptions
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import JointState
+    from dgp_ros.nodes.executor import set_batch_handler, WaitSetExecutor
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node('soak_listener', context=ctx)
+    st = {'answers': 0, 'negative_power': 0, 'non_finite': 0, 'max_gap_s': 0.0,
+          'diagnostics': 0, 'warn_periods': 0, 'last_diag': {}, 'warn_kinds': {}}
+    hist = np.zeros(len(AGE_EDGES_MS) - 1, np.int64)
+    last = [None]
+
+    def on_ans(raws, infos):
+        now = time.time()
+        for r in raws:
+            m = deserialize_message(r, JointState)
+            age_ms = (now - (m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec)) * 1e3
+            hist[np.searchsorted(AGE_EDGES_MS, age_ms, side='right') - 1] += 1
+            v, e = np.asarray(m.velocity), np.asarray(m.effort)
+            if not (np.isfinite(v).all() and np.isfinite(e).all()):
+                st['non_finite'] += 1
+            elif v @ e < -1e-12 * (np.abs(v) @ np.abs(e)):
+                st['negative_power'] += 1
+        if last[0] is not None:
+            st['max_gap_s'] = max(st['max_gap_s'], now - last[0])
+        last[0] = now
+        st['answers'] += len(raws)
+
+    def on_diag(msg):
+        for s in msg.status:
+            if 'dgp_estimator' in s.name:
+                st['diagnostics'] += 1
+                level = s.level[0] if isinstance(s.level, bytes) else int(s.level)
+                st['warn_periods'] += int(level == 1)
+                kinds = st['warn_kinds']
+                if level == 1 and (len(kinds) < 20 or s.message[:50] in kinds):
+                    kinds[s.message[:50]] = kinds.get(s.message[:50], 0) + 1
+                st['last_diag'] = dict({kv.key: kv.value for kv in s.values},
+                                       message=s.message, level=level)
+
+    sub = node.create_subscription(JointState, TOPIC_OUT, lambda m: None,
+                                   QoSProfile(depth=1000), raw=True)
+    set_batch_handler(sub, on_ans, 1000)
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
+    ex = WaitSetExecutor(context=ctx)
+    ex.add_node(node)
+    t_write = time.monotonic()
+    while not stop.is_set():
+        ex.spin_once(timeout_sec=0.02)
+        if time.monotonic() - t_write > 10.0:
+            write_json(a.file, dict(st, age_hist=hist.tolist()))
+            t_write = time.monotonic()
+    write_json(a.file, dict(st, age_hist=hist.tolist(), done=True))
+    ex.shutdown()
+    node.destroy_node()
+    ctx.try_shutdown()
+
+
+# ----------------------------------------------------------------------------- the run
+def _rss_mib(pid: int) -> float:
+    try:
+        with open(f'/proc/{pid}/status') as f:
+            for line in f:
+                if line.startswith('VmRSS:'):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float('nan')
+
+
+def _learners(est_pid: int) -> list:
+    """Return the learner processes: the children of the node's fork server."""
+    table, out = proc_table(), []
+    for pid in descendants(table, est_pid):
+        try:
+            cmd = open(f'/proc/{pid}/cmdline', 'rb').read()
+        except OSError:
+            continue
+        if b'forkserver' in cmd:
+            out += descendants(table, pid)
+    return out
+
+
+def run(a, work: str) -> dict:
+    from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf
+    env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_DOMAIN_ID=str(random.randint(150, 230)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', OPENBLAS_NUM_THREADS='1',
+               PYTHONPATH=C.REPO)
+    env.pop('ROS_LOCALHOST_ONLY', None)
+    f = lambda n: os.path.join(work, n)  # noqa: E731
+    est_env = dict(env)
+    if a.tracemalloc:
+        est_env.update(DGP_TRACEMALLOC=f('trace'), DGP_TRACEMALLOC_S=str(a.sample_s))
+    names = list(ARM_JOINTS['panda'])
+    ros = ['--ros-args', '-r', 'generalized_state:=/joint_states',
+           '-p', 'inverse_dynamics:=urdf', '-p', f'urdf_file:={example_robot_urdf("panda")}',
+           '-p', f'joints:={json.dumps(names)}', '-p', f'model_path:={f("soak.npz")}']
+    me = [sys.executable, os.path.abspath(__file__)]
+    procs = {}
+    logs = [open(f(n + '.log'), 'w') for n in ('estimator', 'listener', 'player')]
+    procs['node'] = subprocess.Popen([sys.executable, '-m', 'dgp_ros.nodes.estimator'] + ros,
+                                     env=est_env, stdout=logs[0], stderr=subprocess.STDOUT,
+                                     start_new_session=True, cwd=work)
+    procs['listener'] = subprocess.Popen(me + ['--role', 'listener', '--file', f('lis.json')],
+                                         env=env, stdout=logs[1], stderr=subprocess.STDOUT,
+                                         start_new_session=True, cwd=work)
+    time.sleep(2.0)
+    procs['player'] = subprocess.Popen(me + ['--role', 'player', '--file', f('player.json'),
+                                             '--duration', str(a.duration),
+                                             '--rate', str(a.rate)],
+                                       env=env, stdout=logs[2], stderr=subprocess.STDOUT,
+                                       start_new_session=True, cwd=work)
+    samples, t0 = [], time.monotonic()
+    try:
+        while procs['player'].poll() is None:
+            if procs['node'].poll() is not None:
+                raise RuntimeError(f'the node ended (see {f("estimator.log")})')
+            learners = _learners(procs['node'].pid)
+            row = {'t': time.monotonic() - t0,
+                   'learner': sum(_rss_mib(p) for p in learners) if learners else float('nan')}
+            row.update({k: _rss_mib(p.pid) for k, p in procs.items()})
+            samples.append(row)
+            C.log(f'{SECTION}: {row["t"]:.0f} s ' + ' '.join(
+                f'{k} {v:.1f}' for k, v in row.items() if k != 't') + ' MiB')
+            end = time.monotonic() + a.sample_s
+            while time.monotonic() < end and procs['player'].poll() is None:
+                time.sleep(0.5)
+        time.sleep(2.0)
+    finally:
+        procs['listener'].send_signal(signal.SIGTERM)
+        procs['node'].send_signal(signal.SIGINT)
+        out = {}
+        for k, p in procs.items():
+            try:
+                out[k + '_rc'] = p.wait(60)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                out[k + '_rc'] = p.wait()
+        for lg in logs:
+            lg.close()
+    log = open(f('estimator.log')).read()
+    out.update(samples=samples, player=json.load(open(f('player.json'))),
+               listener=json.load(open(f('lis.json'))), tracebacks=log.count('Traceback'),
+               saved=os.path.exists(f('soak.npz')), trace={})
+    for name in sorted(os.listdir(work)):
+        if name.startswith('trace.') and name.endswith('.jsonl'):
+            lines = open(f(name)).read().splitlines()
+            if lines:
+                out['trace'][name.split('.')[1]] = [json.loads(x) for x in lines]
+    return out
+
+
+# ----------------------------------------------------------------------------- the report
+def growth(samples: list, key: str, last_s: float) -> tuple:
+    """Return (max - min MiB, slope MiB/h) of ``key`` over the last ``last_s`` s of samples."""
+    t = np.array([s['t'] for s in samples])
+    y = np.array([s[key] for s in samples], float)
+    keep = (t >= t[-1] - last_s) & np.isfinite(y)
+    if keep.sum() < 2:
+        return float('nan'), float('nan')
+    return float(np.ptp(y[keep])), float(np.polyfit(t[keep], y[keep], 1)[0] * 3600.0)
+
+
+def age_percentile(hist: list, q: float) -> float:
+    h = np.asarray(hist, float)
+    if not h.sum():
+        return float('nan')
+    k = int(np.searchsorted(np.cumsum(h), q / 100.0 * h.sum()))
+    return float(AGE_EDGES_MS[min(k + 1, len(AGE_EDGES_MS) - 1)])
+
+
+def report(a, r: dict, wall: float) -> str:
+    s = r['samples']
+    span = s[-1]['t'] if s else 0.0
+    last = 2400.0 if span >= 3000.0 else 2.0 * span / 3.0
+    pub, lis = r['player']['published'], r['listener']
+    rows = []
+    for key, label in (('node', 'the node'), ('learner', 'its learner process'),
+                       ('listener', 'the listener'), ('player', 'the player')):
+        first = next((x[key] for x in s if np.isfinite(x[key])), float('nan'))
+        rng, slope = growth(s, key, last)
+        rows.append([label, C.fmt(first), C.fmt(s[-1][key]), C.fmt(rng), C.fmt(slope)])
+    plt = C.plt()
+    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    t = np.array([x['t'] for x in s]) / 60.0
+    for key in ('node', 'learner', 'listener', 'player'):
+        ax.plot(t, [x[key] for x in s], marker='.', label=key)
+    ax.set_xlabel('minutes')
+    ax.set_ylabel('RSS (MiB)')
+    ax.set_title(f'{a.rate:g} Hz for {a.duration / 60:g} min: resident memory')
+    ax.grid(alpha=0.3)
+    ax.legend()
+    png = C.savefig(fig, a.out, 'soak_memory.png')
+    body = [C.header_lines(TITLE, 'bench/soak_live.py', a.quick, wall), '',
+            "The simulated Panda's raw `/joint_states` (7 joints and a finger) at "
+            f'{a.rate:g} Hz '
+            f'for {a.duration:g} s over DDS into the node as the README starts it on an arm '
+            '(`inverse_dynamics:=urdf`, the URDF, `joints`, `model_path`; defaults otherwise), a '
+            'listener with running statistics; RSS of every process every '
+            f'{a.sample_s:g} s{" (tracemalloc on: slower)" if a.tracemalloc else ""}.', '',
+            f'Answered {lis["answers"]} of {pub} published '
+            f'({100.0 * lis["answers"] / max(pub, 1):.2f} %); '
+            f'negative power {lis["negative_power"]}, non-finite {lis["non_finite"]}; the '
+            "answers' age (publish to receipt) p50 <= "
+            f'{C.fmt(age_percentile(lis["age_hist"], 50))} ms, '
+            f'p99 <= {C.fmt(age_percentile(lis["age_hist"], 99))} ms; the longest silence '
+            f'{C.fmt(lis["max_gap_s"] * 1e3)} ms; /diagnostics at WARN in '
+            f'{lis["warn_periods"]} of {lis["diagnostics"]} periods; the node exited '
+            f'{r.get("node_rc")} and saved its model: {"yes" if r["saved"] else "no"}; '
+            f'tracebacks {r["tracebacks"]}; the player late by over 1 ms '
+            f'{r["player"]["late_over_1ms"]} times.', '',
+            f'Resident memory (MiB), at the first sample, at the end, and over the last '
+            f'{last / 60:.0f} minutes (max - min, and the fitted slope):', '',
+            C.md_table(['process', 'first', 'end', f'range, last {last / 60:.0f} min',
+                        'slope (MiB/h)'], rows), '',
+            f'![memory]({C.rel(png, a.out)})', '']
+    for role, lines in r['trace'].items():
+        top = lines[-1]['top'][:6]
+        body += [f'tracemalloc, {role} at {lines[-1]["t"]:.0f} s (traced '
+                 f'{lines[-1]["traced_mib"]:.1f} MiB): the top growers since the first period: '
+                 + '; '.join(f'`{os.path.relpath(w, C.REPO) if w.startswith(C.REPO) else w}` '
+                             f'{kb:+.0f} KiB ({n:+d})' for w, kb, n in top), '']
+    if lis.get('warn_kinds'):
+        body += ['The WARN periods, by the start of their message: ' + '; '.join(
+            f'"{k}..." {n}' for k, n in sorted(lis['warn_kinds'].items(), key=lambda x: -x[1])),
+            '']
+    diag = lis.get('last_diag', {})
+    if diag:
+        body += [f'The last /diagnostics: level {diag.get("level")}, '
+                 f'"{diag.get("message", "")[:300]}".']
+    return '\n'.join(body)
+
+
+def main(argv=None) -> int:
+    a = C.parse_args(__doc__.split('\n\n')[0], argv, _extra)
+    if a.role == 'player':
+        player(a)
+        return 0
+    if a.role == 'listener':
+        listener(a)
+        return 0
+    if a.quick:
+        a.duration, a.sample_s = min(a.duration, 60.0), min(a.sample_s, 5.0)
+    import tempfile
+    t0 = time.perf_counter()
+    work = a.keep or tempfile.mkdtemp(prefix='dgp_soak_')
+    os.makedirs(work, exist_ok=True)
+    r = run(a, work)
+    text = report(a, r, time.perf_counter() - t0)
+    C.write_section(a.out, SECTION, text)
+    print(text)
+    ok = r['saved'] and not r['tracebacks'] and r['listener']['negative_power'] == 0
+    return 0 if ok else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

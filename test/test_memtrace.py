@@ -1,0 +1,57 @@
+"""
+The soak's memory tracing (``online.memtrace``) and its report's growth figure (bench/soak_live).
+
+Traced only where ``DGP_TRACEMALLOC`` asks: a process that grows a list writes lines whose top
+grower is that list's line; without the variable nothing is started.
+"""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                'bench'))
+
+from dgp_ros.online import memtrace  # noqa: E402
+
+import soak_live  # noqa: E402,I100
+
+GROWER = """
+import time
+from dgp_ros.online.memtrace import start_from_env
+start_from_env('probe')
+keep = []
+t0 = time.time()
+while time.time() - t0 < 2.2:
+    keep.append(bytearray(20000))      # the grower
+    time.sleep(0.01)
+"""
+
+
+def test_a_growing_process_names_its_grower(tmp_path):
+    env = dict(os.environ, DGP_TRACEMALLOC=str(tmp_path / 'trace'), DGP_TRACEMALLOC_S='0.5')
+    subprocess.run([sys.executable, '-c', GROWER], env=env, check=True, timeout=60)
+    files = [p for p in os.listdir(tmp_path) if p.startswith('trace.probe.')]
+    assert len(files) == 1, files
+    lines = [json.loads(x) for x in (tmp_path / files[0]).read_text().splitlines()]
+    assert len(lines) >= 2 and lines[-1]['role'] == 'probe'
+    where, kib, count = lines[-1]['top'][0]
+    assert where == '<string>:8' and kib > 500 and count > 20, lines[-1]
+    assert lines[-1]['traced_mib'] > lines[0]['traced_mib']
+
+
+def test_nothing_is_traced_without_the_variable(monkeypatch):
+    monkeypatch.delenv(memtrace.ENV, raising=False)
+    assert memtrace.start_from_env('x') is None
+
+
+def test_the_growth_over_the_last_minutes():
+    t = np.arange(0.0, 3600.0, 60.0)
+    flat = [{'t': x, 'node': 200.0 + 0.1 * (i % 2)} for i, x in enumerate(t)]
+    rng, slope = soak_live.growth(flat, 'node', 2400.0)
+    assert abs(rng - 0.1) < 1e-9 and abs(slope) < 0.2
+    rising = [{'t': x, 'node': 200.0 + x / 3600.0 * 12.0} for x in t]
+    rng, slope = soak_live.growth(rising, 'node', 2400.0)
+    assert 7.5 < rng < 8.5 and abs(slope - 12.0) < 1e-6
