@@ -35,11 +35,17 @@ class ParamSpec:
     read_only: bool = False     # the node refuses changes at run time (start-up only)
 
     def range_text(self) -> str:
+        """Return the choices ``a | b`` or the closed range ``[low, high]`` ('' for neither)."""
         if self.choices:
             return ' | '.join(self.choices)
         if self.low is not None:
-            return f'[{self.low:g}, {self.high:g}]'
+            return f'[{_plain(self.low)}, {_plain(self.high)}]'
         return ''
+
+
+def _plain(x: float) -> str:
+    """Return ``x`` as a reader writes it: an integer as one (2147483647), else ``:g``."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f'{x:g}'
 
 
 def _is_number(v) -> bool:

@@ -23,10 +23,12 @@ def _triple(text):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m sim_bridge.export',
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter,
                                  description=__doc__.split('\n')[0])
     ap.add_argument('--out', required=True, help='output .npz file')
-    ap.add_argument('--coordinates', choices=['angle', 'body'], default='angle')
-    ap.add_argument('--rate-hz', type=float, default=60.0)
+    ap.add_argument('--coordinates', choices=['angle', 'body'], default='angle',
+                    help='velocities as [alpha, beta, airspeed] or body-axis [u, v, w]')
+    ap.add_argument('--rate-hz', type=float, default=60.0, help='samples a second written')
     ap.add_argument('--wind-amplitude', type=_triple, default=None, metavar='AN,AE,AD',
                     help='wind amplitudes north,east,down (m/s)')
     args = ap.parse_args(argv)

@@ -168,8 +168,11 @@ def main(argv=None) -> int:
         from dgp_ros.apps import robot_demo
         return robot_demo.main(argv)
     ap = argparse.ArgumentParser(prog='dgp-demo', description=__doc__.split('\n\n')[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter,
                                  epilog='The robot demo: dgp-demo --robot panda|ur5 [--quick] '
-                                 '(options: dgp-demo --robot panda --help).')
+                                 '[--seed N] [--closed-loop] (its options: dgp-demo --robot '
+                                 'panda --help; the closed loop: dgp-demo --robot panda '
+                                 '--closed-loop --help).')
     ap.add_argument('--robot', choices=('panda', 'ur5'),
                     help='run the robot demo instead (a simulated arm publishing raw '
                     '/joint_states, see dgp_ros/apps/robot_demo.py)')

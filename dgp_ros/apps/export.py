@@ -26,7 +26,7 @@ __all__ = ['main']
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
-        prog='dgp-export',
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter, prog='dgp-export',
         description='Write a frozen dgp_ros model as one self-contained, header-only C++17 file '
                     '(no Python, no allocation, noexcept) that answers as the frozen node '
                     '(learning:=false model_path:=MODEL) would.')

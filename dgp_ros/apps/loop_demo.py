@@ -48,9 +48,11 @@ NO_HARM = 1.05
 
 
 def parse_args(argv=None):
-    ap = argparse.ArgumentParser(prog='dgp-demo --robot R --closed-loop',
+    ap = argparse.ArgumentParser(prog='dgp-demo',
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter,
                                  description=__doc__.split('\n\n')[0])
-    ap.add_argument('--robot', required=True, choices=('panda', 'ur5'))
+    ap.add_argument('--robot', required=True, choices=('panda', 'ur5'),
+                    help='simulated arm (example-robot-data URDF)')
     ap.add_argument('--closed-loop', action='store_true', help='this demo (always on here)')
     ap.add_argument('--out', default=None, help='output folder (default out/loop_<robot>)')
     ap.add_argument('--duration', type=float, default=12.0, help='simulated run [s]')

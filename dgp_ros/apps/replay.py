@@ -347,13 +347,14 @@ def _interrupt(*_):
 def main(argv=None) -> int:
     prog = 'dgp-replay'
     ap = argparse.ArgumentParser(
-        prog=prog, description='Replay a bag through the online D-GP estimator (offline, no DDS) '
-                               'and write estimates.csv, summary.json and plots.')
+        prog=prog, formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description='Replay a bag through the online D-GP estimator (offline, no DDS) '
+                    'and write estimates.csv, summary.json and plots.')
     ap.add_argument('bag', help='rosbag2 directory (or .db3/.mcap file)')
     ap.add_argument('--out', '-o', required=True, help='output directory (created)')
     ap.add_argument('--topic', '-t', help='JointState topic (default: automatic)')
     ap.add_argument('--joints', '-j', help='comma-separated joint names to select and order')
-    ap.add_argument('--model', choices=KINDS)
+    ap.add_argument('--model', choices=KINDS, help="damping model (default: the node's)")
     ap.add_argument('--passivity', choices=PASSIVITY_MODES,
                     help=describe_modes())
     ap.add_argument('--save-model', metavar='PATH',
@@ -366,7 +367,8 @@ def main(argv=None) -> int:
                          "node's (estimator --help); repeatable")
     ap.add_argument('--stamp', choices=('header', 'bag'), default='header',
                     help='time given to the estimator: header.stamp (as the node) or bag time')
-    ap.add_argument('--no-plots', action='store_true')
+    ap.add_argument('--no-plots', action='store_true',
+                    help='write no PNG plots (CSV and JSON only)')
     ap.add_argument('--quiet', '-q', action='store_true', help='no progress bar or summary line')
     a = ap.parse_args(argv)
     if threading.current_thread() is threading.main_thread():

@@ -148,7 +148,8 @@ def sim_command(a, learn_s: float) -> list:
 
 
 def parse_args(argv=None):
-    ap = argparse.ArgumentParser(prog='dgp-demo --robot', description=__doc__.split('\n\n')[0])
+    ap = argparse.ArgumentParser(prog='dgp-demo', description=__doc__.split('\n\n')[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument('--robot', required=True, choices=('panda', 'ur5'),
                     help='simulated arm (example-robot-data URDF)')
     ap.add_argument('--out', default=None, help='output folder (default out/demo_<robot>)')

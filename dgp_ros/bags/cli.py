@@ -145,13 +145,15 @@ def _drain(ex, rec, limit_s: float = DRAIN_S) -> None:
 
 def _record_parser(prog):
     ap = argparse.ArgumentParser(
-        prog=prog, description='Record ROS 2 topics to a rosbag2 bag (CDR bytes as received).')
+        prog=prog, formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description='Record ROS 2 topics to a rosbag2 bag (CDR bytes as received).')
     ap.add_argument('topics', nargs='*', help='topics to record (type taken from the graph)')
     ap.add_argument('--topic', '-t', action='append', default=[], metavar='NAME[:TYPE]',
                     help='topic to record, optionally with its type (pkg/msg/Name); repeatable')
     ap.add_argument('--output', '-o', required=True,
                     help='bag directory to create (must not exist)')
-    ap.add_argument('--storage', '-s', choices=STORAGES, default='sqlite3')
+    ap.add_argument('--storage', '-s', choices=STORAGES, default='sqlite3',
+                    help='rosbag2 storage format of the bag written')
     ap.add_argument('--duration', '-d', type=float, default=0.0,
                     help='stop after this many seconds (wall time; 0 = until SIGINT/SIGTERM)')
     ap.add_argument('--max-messages', '-n', type=int, default=0,
@@ -159,7 +161,7 @@ def _record_parser(prog):
     ap.add_argument('--qos-depth', type=int, default=1000, help='subscription queue depth')
     ap.add_argument('--qos-reliability', choices=('auto', 'reliable', 'best_effort'),
                     default='auto', help='subscription reliability (auto: adapt to publishers)')
-    ap.add_argument('--quiet', '-q', action='store_true')
+    ap.add_argument('--quiet', '-q', action='store_true', help='no progress lines on stderr')
     return ap
 
 
@@ -221,7 +223,8 @@ def _parse_remaps(specs) -> dict:
 
 
 def _play_parser(prog):
-    ap = argparse.ArgumentParser(prog=prog, description='Publish the messages of a rosbag2 bag.')
+    ap = argparse.ArgumentParser(prog=prog, description='Publish the messages of a rosbag2 bag.',
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument('bag', help='bag directory (or .db3/.mcap file)')
     ap.add_argument('--rate', '-r', type=float, default=1.0,
                     help='time scale: 1 = original timing, 2 = twice as fast, 0 = as fast as '
@@ -237,8 +240,8 @@ def _play_parser(prog):
                     help='wait up to S seconds for a subscriber on every topic before playing')
     ap.add_argument('--min-subscribers', type=int, default=1, metavar='K',
                     help='with --wait-for-subscribers: wait for K subscribers per topic')
-    ap.add_argument('--qos-depth', type=int, default=1000)
-    ap.add_argument('--quiet', '-q', action='store_true')
+    ap.add_argument('--qos-depth', type=int, default=1000, help='publisher queue depth')
+    ap.add_argument('--quiet', '-q', action='store_true', help='no progress lines on stderr')
     return ap
 
 

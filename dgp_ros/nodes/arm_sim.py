@@ -108,13 +108,13 @@ class ArmSimNode(Node):
                                    f'{now - self._start:.1f} s')
 
 
-HELP = help_text('arm_sim', 'A simulated Panda or UR5 (realistic friction, a payload the URDF '
+HELP = help_text('dgp-arm-sim', 'A simulated Panda or UR5 (realistic friction, a payload the URDF '
                  'lacks, noise, jittered 1 kHz stamps) publishing raw joint_states like its '
                  'driver (the robot demo: dgp-demo --robot).', SPECS)
 
 
 def main(args=None) -> int:
-    return run('arm_sim', lambda ctx: ArmSimNode(context=ctx), HELP, args)
+    return run('dgp-arm-sim', lambda ctx: ArmSimNode(context=ctx), HELP, args)
 
 
 if __name__ == '__main__':

@@ -138,11 +138,16 @@ def help_text(prog: str, description: str, specs: Iterable, remaps: str = '') ->
              f'-r FROM:=TO ...]', '', description, '']
     if remaps:
         lines += [remaps, '']
-    lines.append('parameters (name: type = default [range]):')
+    lines.append('parameters (name: type = default  range or choices):')
     for spec in specs:
         rng = spec.range_text()
+        if rng and spec.choices:
+            rng = f'one of {rng}'
+        elif rng and spec.type.endswith('[]'):
+            rng = f'each in {rng}'
         lines.append(f'  {spec.name}: {spec.type} = {json.dumps(spec.default)}'
-                     + (f'  [{rng}]' if rng else ''))
+                     + (f'  {rng}' if rng else '')
+                     + ('  (start-up only)' if getattr(spec, 'read_only', False) else ''))
         lines += textwrap.wrap(spec.description, 95, initial_indent='      ',
                                subsequent_indent='      ')
     return '\n'.join(lines) + '\n'

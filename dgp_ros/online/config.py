@@ -30,11 +30,11 @@ PARAMS = {p.name: p for p in (
               choices=KINDS),
     ParamSpec('passivity', 'str', 'certified', describe_modes(), choices=PASSIVITY_MODES),
     ParamSpec('elements', 'str', 'auto', 'which elements of D each joint keeps: auto (at each '
-              'hyper-parameter refit, by the error on the newest quarter of the buffer held '
-              'out: none, the parametric part alone; its diagonal element; or also its '
-              'couplings to the other joints, only where they predict better; on an arm only '
-              'beside a velocity that never nears zero) or all (every '
-              "element of the model kind: the paper's Full-D-GP)", choices=('auto', 'all')),
+              'hyper-parameter refit, by 4-fold blocked cross-validation over the buffer: each '
+              'contiguous quarter predicted by the rest; none, the parametric part alone; its '
+              'diagonal element; or also its couplings to the other joints, only where they '
+              'predict better; on an arm only beside a velocity that never nears zero) or all '
+              "(every element of the model kind: the paper's Full-D-GP)", choices=('auto', 'all')),
     ParamSpec('prior', 'str', 'auto', 'prior mean of the damping: auto (the structure is chosen '
               'from the data by cross-validation: friction family, offsets, the conservative '
               'correction of the rigid-body model; fitted on the whole history), or fixed: '
