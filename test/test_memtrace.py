@@ -1,5 +1,7 @@
 """
-The soak's memory tracing (``online.memtrace``) and its report's growth figure (bench/soak_live).
+The soak's memory tracing, its report's growth figure, the benchmarks' one entry point.
+
+``online.memtrace``, ``bench/soak_live.py`` and ``python -m bench`` (bench/__main__.py).
 
 Traced only where ``DGP_TRACEMALLOC`` asks: a process that grows a list writes lines whose top
 grower is that list's line; without the variable nothing is started.
@@ -55,3 +57,16 @@ def test_the_growth_over_the_last_minutes():
     rising = [{'t': x, 'node': 200.0 + x / 3600.0 * 12.0} for x in t]
     rng, slope = soak_live.growth(rising, 'node', 2400.0)
     assert 7.5 < rng < 8.5 and abs(slope - 12.0) < 1e-6
+
+
+def test_one_entry_point_lists_and_runs_the_benchmarks():
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = subprocess.run([sys.executable, '-m', 'bench', '--list'], cwd=repo,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0
+    names = [line.split()[0] for line in out.stdout.splitlines() if line.startswith('  ')]
+    assert {'ledger', 'robot_family', 'soak_live', 'a320_family'} <= set(names)
+    assert 'common' not in names and 'live_procs' not in names
+    bad = subprocess.run([sys.executable, '-m', 'bench', 'nosuch'], cwd=repo,
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and '--list' in bad.stderr
