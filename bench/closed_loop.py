@@ -14,7 +14,8 @@ the node's defaults except ``refit_mode='sync'``), the same reference path and s
    a SIGKILL): tracking RMS from the kill + the controller's timeout to the end, against the none
    run's over the same window.
 
-Writes ``<out>/closed_loop.json`` and prints the markdown rows of docs/BENCHMARKS.md.
+Writes ``<out>/closed_loop.json`` and prints markdown rows (the sweep at a2de3ce:
+docs/CHANGELOG.md).
 Usage: bench/closed_loop.py [--robots panda,ur5] [--duration 24] [--learn 16] [--stability]
 """
 from __future__ import annotations

@@ -9,7 +9,7 @@ learning part), ``dgp`` (the live estimator's damping force and rigid-body corre
 ``dgp_damping_only``. The estimator learns while the loop runs (it sees the effect of its own
 compensation); the first ``--learn`` seconds are the learning part, the rest is scored.
 
-Two modes, both lock-step through simulated time (docs/BENCHMARKS.md, "Closed loop"):
+Two modes, both lock-step through simulated time (docs/CHANGELOG.md, "Closed loop"):
 
 1. the four-way sweep in worker processes, each run in one process (``apps.loop_run``: the
    estimator with the node's defaults except ``refit_mode='sync'``): reproducible;
