@@ -27,7 +27,8 @@ def tbl(headers, rows) -> str:
 
 def build_report(R: dict, quick: bool, seconds: float) -> str:
     L = [header_lines('Hostile input', SCRIPT, quick, seconds)]
-    L.append('The adversarial trial of the hardening issue (18), repeated by one command. '
+    L.append('The adversarial trial of the node and its tools, repeated by one command '
+             '(`python -m bench hostile`). '
              'Everything a peer can send (messages), set (parameters) or hand over (model files, '
              'bags) is thrown at the estimator; each row counts the inputs and the result. '
              '"Documented exceptions" are `ValueError` from configuration and model files, '
