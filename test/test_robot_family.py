@@ -20,8 +20,13 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
 import robot_family  # noqa: E402
 
 
+#: the suite's cases: every rate but 500 Hz, which lies between the ~1 kHz log and its 125 Hz
+#: decimation and costs 20 s (bench/robot_family.py runs it)
+SUITE = [c[0] for c in robot_family.CASES if c[2] != 500.0]
+
+
 @pytest.mark.timeout(600)       # 10-40 s alone: the suite's 300 s guard is for hangs
-@pytest.mark.parametrize('label', [c[0] for c in robot_family.CASES])
+@pytest.mark.parametrize('label', SUITE)
 def test_a_real_arm_held_out_beside_its_parametric_refits(label):
     log = robot_family.family_log(label)
     if log is None:
