@@ -67,11 +67,18 @@ class Calls:
         """Hand the reply with id ``i`` to whoever waits for it (the receiver thread)."""
         with self._cv:
             cb = self._callbacks.pop(i, None)
-            if cb is None:
+            # a reply nobody waits for any more (its call timed out or expired) is dropped:
+            # kept, one per late reply, they would pile up for the life of the node
+            if cb is None and i in self._replies:
                 self._replies[i] = (ok, payload)
                 self._cv.notify_all()
         if cb is not None:
             cb[0]((ok, payload))
+
+    def held(self) -> int:
+        """Return how many calls are open: waited for, or with a callback (none when idle)."""
+        with self._cv:
+            return len(self._replies) + len(self._callbacks)
 
     def fail_all(self, why: str) -> None:
         """Answer every call still open with (False, why): the child died."""
