@@ -178,3 +178,22 @@ def test_names_block_and_float64():
         assert serialization.deserialize_message(encode_float64(x), Float64).data == x
     assert encode_names([]) == b'\x00' * 4
     assert len(encode_names(['ab', 'c'])) % 4 == 0
+
+
+def test_a_peer_that_keeps_changing_its_names_does_not_grow_the_reader():
+    import tracemalloc
+    rng = random.Random(5)
+    raws = [serialization.serialize_message(_message(rng, [f'joint_{i}_{k}' for k in range(3)],
+                                                     [3, 3, 3])) for i in range(1200)]
+    reader = JointStateReader()
+    tracemalloc.start()
+    try:
+        for raw in raws[:200]:
+            reader.read([raw])
+        early = tracemalloc.get_traced_memory()[0]
+        for raw in raws[200:]:
+            reader.read([raw])
+        late = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    assert late - early < 20_000, (early, late)         # bytes: 1000 more name lists held none

@@ -235,6 +235,8 @@ class JointStateReader:
             n, a, p = _read_doubles(raw, p)
             seqs.append((n, a))
         key = (names,) + tuple(n for n, _ in seqs)
+        if len(self._shapes) >= 4 * self.KEEP:          # a peer that keeps changing its names
+            self._shapes.pop(next(iter(self._shapes)))
         self._shapes[(names, o % 8)] = _shape_of(o, seqs, p, key)
         return sec, nsec, hend, names, key, [a for n, a in seqs if n]
 
