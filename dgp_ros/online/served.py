@@ -97,12 +97,15 @@ class Served:
 
         Nothing is appended when they are not all at hand in learning order with the model's
         targets: the next rebase takes them (``blocked``). A model that cannot take them (a
-        singular update) is rebased instead: ``appended`` jumps to ``rebase_after``.
+        singular update) is rebased instead: ``appended`` jumps to ``rebase_after``. Nor once
+        ``rebase_after`` samples were appended: the model then holds at most its window and
+        as many again, however long its rebases take (they are due after a quarter).
         """
         if self._model is None or window.seq <= self._held:
             return 0
         rows = window.rows_after(self._held)
-        if not rows or rows[0][0] != self._held + 1 or any(r[1] != self._gen for r in rows):
+        if not rows or rows[0][0] != self._held + 1 or any(r[1] != self._gen for r in rows) \
+                or self._appended + len(rows) > rebase_after:
             self._blocked = True
             return 0
         try:
