@@ -70,3 +70,31 @@ def test_one_entry_point_lists_and_runs_the_benchmarks():
     bad = subprocess.run([sys.executable, '-m', 'bench', 'nosuch'], cwd=repo,
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and '--list' in bad.stderr
+
+
+TRIM = """
+import numpy as np
+from dgp_ros.online import memtrace
+def rss():
+    for line in open('/proc/self/status'):
+        if line.startswith('VmRSS'):
+            return int(line.split()[1]) / 1024
+big, small = [], []
+for i in range(3000):                   # arrays freed between arrays kept: holes in the heap
+    big.append(np.ones(12000))
+    small.append(np.ones(100))
+del big
+before = rss()
+ok = memtrace.trim()
+print(ok, before, rss())
+"""
+
+
+def test_the_freed_heap_goes_back_to_the_system():
+    out = subprocess.run([sys.executable, '-c', TRIM], capture_output=True, text=True,
+                         timeout=60, check=True).stdout.split()
+    ok, before, after = out[0] == 'True', float(out[1]), float(out[2])
+    if not ok:
+        import pytest
+        pytest.skip('no glibc malloc_trim here')
+    assert before > 250.0 and after < before - 150.0, (before, after)     # MB

@@ -14,7 +14,9 @@ joint's velocity, learned from every sample) needs three things the parametric p
   an element that the halves learn differently is not a velocity curve the data hold
   (``gp.joint_element.agreement``) and is not served;
 * **its fit**: from the statistics of all the samples, the history's cross-validation folds and
-  the halves, each against what the parametric part leaves.
+  the halves, each against what the parametric part leaves; and **the velocities it saw**, per
+  joint the lowest and the highest, beyond which the element hands back to the parametric part
+  (``JointElementMean(span=)``).
 
 No rclpy.
 """
@@ -50,6 +52,9 @@ class ElementTrack:
         self.M = int(M)
         self.basis: Optional[VelocityBasis] = None
         self.vmax: Optional[np.ndarray] = None         # the largest speed of each joint
+        #: the lowest and highest velocity of each joint: the element serves inside them
+        self.vlo: Optional[np.ndarray] = None
+        self.vhi: Optional[np.ndarray] = None
         self.t0: Optional[float] = None                # the first sample's stamp
         self.halves = [Stats(N, Lx), Stats(N, Lx)]
         self.half_samples = [0, 0]                     # samples with the element's columns
@@ -60,6 +65,9 @@ class ElementTrack:
         """Return the element's columns of velocities V (k, N) learned by ``stamp``: (k, N, M)."""
         top = np.max(np.abs(V), axis=0)
         self.vmax = top if self.vmax is None else np.maximum(self.vmax, top)
+        lo, hi = V.min(axis=0), V.max(axis=0)
+        self.vlo = lo if self.vlo is None else np.minimum(self.vlo, lo)
+        self.vhi = hi if self.vhi is None else np.maximum(self.vhi, hi)
         if self.t0 is None:
             self.t0 = stamp
         if self.basis is None:
@@ -107,4 +115,6 @@ class ElementTrack:
         full = [total.element_train(j, thetas[j], L, cols, offset) for j in range(N)]
         halves = [[h.element_train(j, thetas[j], L, cols, offset) for h in self.halves]
                   for j in range(N)]
-        return fit_elements(self.basis, full, cv, halves, self.half_samples)
+        fit = fit_elements(self.basis, full, cv, halves, self.half_samples)
+        fit.span = (self.vlo.copy(), self.vhi.copy())
+        return fit

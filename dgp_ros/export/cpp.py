@@ -71,7 +71,8 @@ def _element_code(el: dict, N: int) -> str:
     """
     ``element_diag(e, v, |v|)``: element e's part of ``m_d`` (gp/joint_element.py).
 
-    ``g(u) = sum_k w_k sin(k x)``, ``x = pi (u + 1) / 2``, ``u = v / sqrt(v^2 + vc^2)``, with
+    ``g(u) = sum_k w_k sin(k x)``, ``x = pi (u + 1) / 2``, ``u = w / sqrt(w^2 + vc^2)``, ``w`` the
+    velocity clipped into the element's span, with
     ``sin(k x)`` by the recurrence ``s_(k+1) = 2 cos(x) s_k - s_(k-1)`` (one sin and one cos),
     times ``tanh(|v| / eps) / |v|``. The header declares ``tanh_over`` after this function's
     caller needs it: both are inline and defined before ``prior_diag``.
@@ -80,11 +81,16 @@ def _element_code(el: dict, N: int) -> str:
     n, M = W.shape
     of = np.full(N, -1, int)
     of[el['joints']] = np.arange(n)
+    big = 1e300                     # no span known: nothing clipped
+    lo = np.maximum(np.asarray(el.get('lo', np.full(n, -big)), float), -big)
+    hi = np.minimum(np.asarray(el.get('hi', np.full(n, big)), float), big)
     return (_const('EW', W) + _const('EVC', el['vc']) + _const('EEPS', el['eps']) +
+            _const('ELO', lo) + _const('EHI', hi) +
             _const('ELEMENT_OF', of, 'int') +
             'inline double tanh_over(double a, double eps) noexcept;\n'
             'inline double element_diag(int e, double v, double a) noexcept {\n'
-            '  const double u = v / std::sqrt(v * v + EVC[e] * EVC[e]);\n'
+            '  const double w = v < ELO[e] ? ELO[e] : (v > EHI[e] ? EHI[e] : v);\n'
+            '  const double u = w / std::sqrt(w * w + EVC[e] * EVC[e]);\n'
             '  const double x = 1.5707963267948966 * (u + 1.0);\n'
             '  const double c2 = 2.0 * std::cos(x);\n'
             '  double s0 = 0.0, s1 = std::sin(x), g = 0.0;\n'

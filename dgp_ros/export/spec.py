@@ -130,8 +130,11 @@ def _prior(mean, N: int) -> dict:
         out = _prior(mean.base, N)
         j = np.asarray(mean.active, int)
         b = mean.basis
+        lo, hi = (np.full(b.N, -np.inf), np.full(b.N, np.inf)) if mean.span is None else \
+            mean.span
         out['element'] = {'joints': j, 'W': np.asarray(mean.W, float)[j],
-                          'vc': np.asarray(b.vc, float)[j], 'eps': np.asarray(b.eps, float)[j]}
+                          'vc': np.asarray(b.vc, float)[j], 'eps': np.asarray(b.eps, float)[j],
+                          'lo': np.asarray(lo, float)[j], 'hi': np.asarray(hi, float)[j]}
         return out
     if isinstance(mean, CoupledMean):
         out = _prior(mean.base, N)

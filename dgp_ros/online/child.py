@@ -22,7 +22,7 @@ import numpy as np
 from .config import EstimatorConfig
 from .grounds import GAINS
 from .learner import Learner
-from .memtrace import start_from_env as trace_memory
+from .memtrace import start_from_env as trace_memory, trim, TRIM_PERIOD_S
 from .plan import PlanCache
 from .ring import SampleRing
 
@@ -133,9 +133,13 @@ class LearnerLoop:
         if self.learner is None:
             return
         prof = None
+        trimmed = time.monotonic()
         try:
             while True:
                 prof = self._profile_window(prof)
+                if time.monotonic() - trimmed >= TRIM_PERIOD_S:
+                    trim()                  # the freed heap back to the system (memtrace)
+                    trimmed = time.monotonic()
                 if not self._commands():
                     break
                 busy = self._samples()

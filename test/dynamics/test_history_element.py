@@ -47,6 +47,14 @@ def test_the_element_learns_what_the_parametric_part_leaves_from_every_sample():
     err_param = np.mean((m.base.force(Q)[:, 0] - f) ** 2)
     assert err < 0.5 * err_param
     assert 'elements on 0' in fit.label()
+    # it serves on the velocities the run visited, and hands back to the parametric part
+    # beyond them: its element's value there stays at the edge's
+    np.testing.assert_array_equal(m.span[0], V.min(axis=0))
+    np.testing.assert_array_equal(m.span[1], V.max(axis=0))
+    far = np.c_[np.linspace(V[:, 0].max() * 1.05, 6.0, 50), np.zeros(50)]
+    edge = np.c_[np.full(50, V[:, 0].max()), np.zeros(50)]
+    assert np.all(np.abs(m.element_force(far)[:, 0]) <= np.abs(m.element_force(edge)[0, 0])
+                  * 1.0001)
 
 
 def test_the_elements_statistics_are_those_of_the_samples():

@@ -139,6 +139,8 @@ def _element_prior(N=7, seed=6, asymmetric=False):
     """
     Return a frozen friction prior with elements on joints 0, 2 and 5 (gp.joint_element).
 
+    Each element was learned on velocities within +-0.3..1 (its span).
+
     asymmetric: its base has coefficients of its own for v < 0 (``coef_neg``).
     """
     from dgp_ros.dynamics.parametric import EPS_S, F, FRICTION_EPS, STRIBECK_VS
@@ -150,7 +152,9 @@ def _element_prior(N=7, seed=6, asymmetric=False):
                              STRIBECK_VS, coef_neg=neg)
     W = np.zeros((N, M_BASIS))
     W[[0, 2, 5]] = rng.normal(0.0, 0.3, (3, M_BASIS)) / np.arange(1, M_BASIS + 1)
-    return JointElementMean(base, VelocityBasis(rng.uniform(0.5, 2.0, N)), W)
+    # the velocities the elements were learned on: the header clips into them as Python does
+    span = (-rng.uniform(0.3, 1.0, N), rng.uniform(0.3, 1.0, N))
+    return JointElementMean(base, VelocityBasis(rng.uniform(0.5, 2.0, N)), W, span=span)
 
 
 @pytest.fixture(scope='module')

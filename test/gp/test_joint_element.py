@@ -97,3 +97,48 @@ def test_fit_elements_keeps_none_without_folds():
     full = [ElementFold(G, np.ones(M_BASIS + 1))] * 2
     fit = fit_elements(b, full, [[], []])
     assert not fit.on.any() and np.all(np.isnan(fit.scores))
+
+
+def _spanned(seed=11):
+    m = _mean(seed=seed, scale=1.0)
+    span = (np.array([-0.8, -1.0, -0.3]), np.array([0.6, 1.0, 1.2]))
+    return m, JointElementMean(m.base, m.basis, m.W, span=span), span
+
+
+def test_beyond_its_span_the_element_keeps_its_edge_value_and_hands_back():
+    m, s, (lo, hi) = _spanned()
+    rng = np.random.default_rng(12)
+    inside = rng.uniform(lo, hi, (2000, 3))
+    np.testing.assert_array_equal(s.diag(inside), m.diag(inside))
+    out = np.concatenate([rng.uniform(hi + 0.01, hi + 5.0, (500, 3)),
+                          rng.uniform(lo - 5.0, lo - 0.01, (500, 3))])
+    edge = np.clip(out, lo, hi)
+    # g at the edge, times tanh(|v| / eps) / |v| at the velocity itself
+    t = np.tanh(np.abs(out) / s.basis.eps) / np.abs(out)
+    t_edge = np.tanh(np.abs(edge) / s.basis.eps) / np.abs(edge)
+    np.testing.assert_allclose(s.element_diag(out), m.element_diag(edge) * t / t_edge,
+                               rtol=1e-9, atol=1e-12)
+    # so the element's force does not grow past the edge (the parametric part answers)
+    f_far = np.abs(s.element_force(np.array([hi * 20.0])))[0]
+    f_edge = np.abs(s.element_force(np.array([hi])))[0]
+    assert np.all(f_far <= f_edge * 1.0001 + 1e-12)
+    assert np.all(s.diag(out) >= 0.0) and np.all(np.einsum('kn,kn->k', out, s.force(out)) >= 0)
+
+
+def test_bounds_and_files_with_a_span():
+    _, s, _ = _spanned(13)
+    rng = np.random.default_rng(14)
+    for width in (1e-3, 0.3, 5.0):
+        c = rng.normal(0.0, 1.5, (300, 3))
+        lo, hi = c - width * rng.uniform(0, 1, (300, 3)), c + width * rng.uniform(0, 1, (300, 3))
+        dlo, dhi = s.diag_bounds(lo, hi)
+        for t in rng.uniform(0.0, 1.0, (40, 1, 3)):
+            d = s.diag(lo + t * (hi - lo))
+            assert np.all(d >= dlo - 1e-12) and np.all(d <= dhi + 1e-12)
+    v = np.concatenate([-np.logspace(-6, 4, 5001), np.logspace(-6, 4, 5001)])
+    assert np.all(s.diag(np.repeat(v[:, None], 3, axis=1)).min(axis=0) >= s.diag_inf() - 1e-12)
+    s2 = mean_from_dict(s.to_dict(), N=3)
+    V = rng.normal(0.0, 3.0, (500, 3))
+    np.testing.assert_array_equal(s2.diag(V), s.diag(V))
+    with pytest.raises(ValueError, match='span'):
+        JointElementMean(s.base, s.basis, s.W, span=(np.ones(3), np.zeros(3)))
