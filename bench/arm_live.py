@@ -52,7 +52,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from arm_live_report import fmt_ms, section, summarize  # noqa: E402
 import common as C  # noqa: E402
-from cpu_watch import CpuWatch, descendants, proc_table  # noqa: E402
+from cpu_watch import CpuWatch, learner_pids  # noqa: E402
 
 from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, simulate_arm  # noqa: E402
 
@@ -96,20 +96,6 @@ def _extra(p):
 
 
 # ----------------------------------------------------------------------------- one run
-def _learner_pids(est_pid: int) -> List[int]:
-    """Return the learner processes: children of the estimator's fork server."""
-    table = proc_table()
-    out = []
-    for pid in descendants(table, est_pid):
-        try:
-            cmd = open(f'/proc/{pid}/cmdline', 'rb').read()
-        except OSError:
-            continue
-        if b'forkserver' in cmd:
-            out.extend(k for k in descendants(table, pid))
-    return out
-
-
 def _killer(est_pid: int, sc: Scenario, t_start: float, seconds: float, ros_env: dict,
             out: list, stop: threading.Event) -> None:
     """SIGKILL the learner mid-refit ``sc.kills`` times; notes kill, fork and back times."""
@@ -159,7 +145,7 @@ def _killer(est_pid: int, sc: Scenario, t_start: float, seconds: float, ros_env:
         spin_for(0.2)
         rec['refit_running'] = last.get('refit_running', '?')
         restarts = int(last.get('learner_restarts', '0') or 0)
-        pids = _learner_pids(est_pid)
+        pids = learner_pids(est_pid)
         t_kill = time.time()
         for pid in pids:
             try:
@@ -168,7 +154,7 @@ def _killer(est_pid: int, sc: Scenario, t_start: float, seconds: float, ros_env:
                 pass
         rec.update(t_kill=t_kill, killed=pids)
         while time.time() - t_kill < 10 and not stop.is_set():
-            new = [p for p in _learner_pids(est_pid) if p not in pids]
+            new = [p for p in learner_pids(est_pid) if p not in pids]
             if new:
                 rec['t_fork'] = time.time() - t_kill
                 break

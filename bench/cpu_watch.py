@@ -51,6 +51,20 @@ def descendants(table, root) -> List[int]:
     return out
 
 
+def learner_pids(est_pid: int) -> List[int]:
+    """Return the estimator's learner processes: the children of its fork server."""
+    table = proc_table()
+    out = []
+    for pid in descendants(table, est_pid):
+        try:
+            cmd = open(f'/proc/{pid}/cmdline', 'rb').read()
+        except OSError:
+            continue
+        if b'forkserver' in cmd:
+            out.extend(descendants(table, pid))
+    return out
+
+
 class CpuWatch:
     """
     CPU of this benchmark's processes and of the machine over a window (sampled every 0.25 s).

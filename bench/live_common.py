@@ -11,7 +11,8 @@ import os
 import signal
 import threading
 
-__all__ = ['TOPIC_IN', 'TOPIC_OUT', 'FINGER', 'stop_event', 'thread_cpu', 'write_json']
+__all__ = ['TOPIC_IN', 'TOPIC_OUT', 'FINGER', 'stop_event', 'thread_cpu', 'write_json',
+           'panda_messages']
 
 TOPIC_IN = '/joint_states'
 TOPIC_OUT = '/dgp_estimator/damping_force'
@@ -50,3 +51,26 @@ def write_json(path: str, obj) -> None:
     with open(tmp, 'w') as f:
         json.dump(obj, f)
     os.replace(tmp, path)
+
+
+def panda_messages(d: dict) -> list:
+    """
+    Return ``simulate_arm('panda', ...)``'s samples ``d`` as a driver's JointState messages.
+
+    The 7 joints and a finger joint (position 0.02, velocity 0, effort 0.1), unstamped.
+    """
+    from array import array
+
+    import numpy as np
+    from sensor_msgs.msg import JointState
+    from dgp_ros.dynamics import ARM_JOINTS
+    names = list(ARM_JOINTS['panda']) + [FINGER]
+    msgs = []
+    for q, v, e in zip(d['q'], d['qd'], d['effort']):
+        m = JointState()
+        m.name = names
+        m.position = array('d', np.r_[q, 0.02].tolist())
+        m.velocity = array('d', np.r_[v, 0.0].tolist())
+        m.effort = array('d', np.r_[e, 0.1].tolist())
+        msgs.append(m)
+    return msgs

@@ -36,7 +36,8 @@ import struct
 import sys
 import time
 
-from live_common import FINGER, stop_event, thread_cpu, TOPIC_IN, TOPIC_OUT, write_json
+from live_common import FINGER, panda_messages, stop_event, thread_cpu, TOPIC_IN, TOPIC_OUT, \
+    write_json
 
 
 # ----------------------------------------------------------------------------- player
@@ -64,14 +65,8 @@ def player(a) -> None:
             offsets.append(float(t))
     for rate, secs in phases:
         d = simulate_arm('panda', secs, rate_hz=rate, seed=a.seed, t0_s=t_sim)
-        for t, q, v, e in zip(d['t'], d['q'], d['qd'], d['effort']):
-            m = JointState()
-            m.name = names
-            m.position = array('d', np.r_[q, 0.02].tolist())
-            m.velocity = array('d', np.r_[v, 0.0].tolist())
-            m.effort = array('d', np.r_[e, 0.1].tolist())
-            msgs.append(m)
-            offsets.append(float(t))
+        msgs += panda_messages(d)
+        offsets += [float(t) for t in d['t']]
         t_sim += secs
     ctx = rclpy.Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)

@@ -39,9 +39,10 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common as C  # noqa: E402
-from cpu_watch import descendants, proc_table  # noqa: E402
+from cpu_watch import learner_pids  # noqa: E402
 
-from live_common import FINGER, stop_event, TOPIC_IN, TOPIC_OUT, write_json  # noqa: E402,I100
+from live_common import (panda_messages, stop_event, TOPIC_IN, TOPIC_OUT,  # noqa: E402,I100
+                         write_json)
 
 SECTION = 'soak_live'
 TITLE = 'An hour at 1 kHz: memory against time'
@@ -68,18 +69,9 @@ def player(a) -> None:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
-    from array import array
-    from dgp_ros.dynamics import ARM_JOINTS, simulate_arm
-    names = list(ARM_JOINTS['panda']) + [FINGER]
+    from dgp_ros.dynamics import simulate_arm
     d = simulate_arm('panda', CYCLE_S, rate_hz=a.rate, seed=7)
-    msgs = []
-    for q, v, e in zip(d['q'], d['qd'], d['effort']):
-        m = JointState()
-        m.name = names
-        m.position = array('d', np.r_[q, 0.02].tolist())
-        m.velocity = array('d', np.r_[v, 0.0].tolist())
-        m.effort = array('d', np.r_[e, 0.1].tolist())
-        msgs.append(m)
+    msgs = panda_messages(d)
     offs = d['t'] - d['t'][0]
     ctx = rclpy.Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
@@ -196,19 +188,6 @@ def _rss_mib(pid: int) -> float:
     return float('nan')
 
 
-def _learners(est_pid: int) -> list:
-    """Return the learner processes: the children of the node's fork server."""
-    table, out = proc_table(), []
-    for pid in descendants(table, est_pid):
-        try:
-            cmd = open(f'/proc/{pid}/cmdline', 'rb').read()
-        except OSError:
-            continue
-        if b'forkserver' in cmd:
-            out += descendants(table, pid)
-    return out
-
-
 def run(a, work: str) -> dict:
     from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf
     env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_DOMAIN_ID=str(random.randint(150, 230)),
@@ -243,7 +222,7 @@ def run(a, work: str) -> dict:
         while procs['player'].poll() is None:
             if procs['node'].poll() is not None:
                 raise RuntimeError(f'the node ended (see {f("estimator.log")})')
-            learners = _learners(procs['node'].pid)
+            learners = learner_pids(procs['node'].pid)
             row = {'t': time.monotonic() - t0,
                    'learner': sum(_rss_mib(p) for p in learners) if learners else float('nan')}
             row.update({k: _rss_mib(p.pid) for k, p in procs.items()})
