@@ -36,17 +36,23 @@ def test_the_prior_with_elements_is_passive_everywhere(spread):
     assert np.mean(m.diag(V)[:, 0] != m.base.diag(V)[:, 0]) > 0.5
 
 
+def _enclosed(m, rng, width, spread, boxes, points):
+    """Check ``m.diag_bounds`` on random boxes at ``points`` points each; (lo, hi, dlo, dhi)."""
+    c = rng.normal(0.0, spread, (boxes, 3))
+    lo, hi = c - width * rng.uniform(0, 1, (boxes, 3)), c + width * rng.uniform(0, 1, (boxes, 3))
+    dlo, dhi = m.diag_bounds(lo, hi)
+    for t in rng.uniform(0.0, 1.0, (points, 1, 3)):
+        d = m.diag(lo + t * (hi - lo))
+        assert np.all(d >= dlo - 1e-12) and np.all(d <= dhi + 1e-12)
+    return lo, hi, dlo, dhi
+
+
 @pytest.mark.parametrize('decay', [0.0, 2.0])
 def test_diag_bounds_enclose_every_value_of_the_box_and_shrink_with_it(decay):
     m = _mean(seed=3, scale=1.0, decay=decay)
     rng = np.random.default_rng(4)
     for width in (1e-3, 0.1, 1.0, 50.0):
-        c = rng.normal(0.0, 1.0, (200, 3))
-        lo, hi = c - width * rng.uniform(0, 1, (200, 3)), c + width * rng.uniform(0, 1, (200, 3))
-        dlo, dhi = m.diag_bounds(lo, hi)
-        for t in rng.uniform(0.0, 1.0, (50, 1, 3)):
-            d = m.diag(lo + t * (hi - lo))
-            assert np.all(d >= dlo - 1e-12) and np.all(d <= dhi + 1e-12)
+        lo, hi, dlo, dhi = _enclosed(m, rng, width, 1.0, 200, 50)
         if width == 1e-3 and decay:     # tight on small boxes away from rest (steep t(v) there)
             far = np.all(np.minimum(np.abs(lo), np.abs(hi)) > 0.2, axis=1)
             assert far.sum() > 20
@@ -129,12 +135,7 @@ def test_bounds_and_files_with_a_span():
     _, s, _ = _spanned(13)
     rng = np.random.default_rng(14)
     for width in (1e-3, 0.3, 5.0):
-        c = rng.normal(0.0, 1.5, (300, 3))
-        lo, hi = c - width * rng.uniform(0, 1, (300, 3)), c + width * rng.uniform(0, 1, (300, 3))
-        dlo, dhi = s.diag_bounds(lo, hi)
-        for t in rng.uniform(0.0, 1.0, (40, 1, 3)):
-            d = s.diag(lo + t * (hi - lo))
-            assert np.all(d >= dlo - 1e-12) and np.all(d <= dhi + 1e-12)
+        _enclosed(s, rng, width, 1.5, 300, 40)
     v = np.concatenate([-np.logspace(-6, 4, 5001), np.logspace(-6, 4, 5001)])
     assert np.all(s.diag(np.repeat(v[:, None], 3, axis=1)).min(axis=0) >= s.diag_inf() - 1e-12)
     s2 = mean_from_dict(s.to_dict(), N=3)
