@@ -329,6 +329,8 @@ class LearnerLoop:
             elif kind == 'save':
                 ok, what = True, L.save(args[0])
             elif kind == 'reset':
+                if args and args[0] is not None and self.ring is not None:
+                    self.ring.skip_to(args[0])      # the samples sent before the reset
                 L.reset()
                 ok, what = True, 'reset'
             elif kind == 'check':

@@ -344,7 +344,9 @@ class LearnerProcess:
         return False
 
     def reset(self) -> None:
-        self._call('reset')
+        """Forget everything learned, the rows still in the ring included (``SampleRing.mark``)."""
+        ring = self._ring
+        self._call('reset', None if ring is None else ring.mark())
 
     def check_reconfigure(self, config: EstimatorConfig) -> None:
         ok, why = self._call('check', dataclasses.asdict(config))

@@ -56,6 +56,7 @@ class SampleRing:
             self._hdr[:] = 0
         self._lock = lock
         self._backlog: deque = deque()
+        self._skip = 0                  # the consumer passes over rows before this index
 
     @property
     def name(self) -> str:
@@ -162,10 +163,28 @@ class SampleRing:
         finally:
             self._lock.release()
 
+    def mark(self) -> int:
+        """
+        Return the producer's index after every row pushed so far (its backlog included).
+
+        The consumer's ``skip_to(mark)`` then passes over them: a reset forgets the rows sent
+        before it, though they reach the consumer after it (the ring and the commands are two
+        channels, and the consumer reads its commands first).
+        """
+        with self._lock:
+            return int(self._hdr[0]) + len(self._backlog)
+
+    def skip_to(self, index: int) -> None:
+        """Consumer: never take the rows before ``index`` (a producer's ``mark``)."""
+        self._skip = max(self._skip, int(index))
+
     def take(self, max_rows: Optional[int] = None) -> np.ndarray:
         """Return a copy of the rows waiting (oldest first, at most ``max_rows``), (k, width)."""
         with self._lock:
             w, r = int(self._hdr[0]), int(self._hdr[1])
+            if r < self._skip:          # rows a reset forgot (``skip_to``)
+                r = min(self._skip, w)
+                self._hdr[1] = r
         k = w - r if max_rows is None else min(w - r, int(max_rows))
         if k <= 0:
             return np.empty((0, self.width))
