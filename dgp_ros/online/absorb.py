@@ -114,10 +114,16 @@ class Rebases:
             self._wanted.clear()
             self.run()
 
+    # a rebase asked for just before learning was switched off can start in its thread after
+    # the freeze saved the model: only the freeze rebases a model that no longer learns
+
     # ------------------------------------------------------------------ the rebase
-    def run(self) -> None:
+    def run(self, freeze: bool = False) -> None:
         """
         Refit the model on the window at its hyper-parameters (exact; O(N n^3)).
+
+        With learning off only the freeze (``freeze``) rebases: the saved model is the one that
+        serves until learning is switched on again.
 
         The scales stay those of the last hyper-parameter fit; with ``prior='auto'`` the frozen
         prior is the newest fit of the long history (``structure``). A certifying mode's proof
@@ -128,6 +134,8 @@ class Rebases:
         win, st = self._window, self._structure
         with self._lock:
             cfg = self._settings()
+            if not (cfg.learning or freeze):
+                return
             seq, generation, hyper = win.seq, self._refits.generation, self._refits.hyper
             if st.reselect_due():
                 st.reselect(win)        # retargets the window; the prior rides in the hyper

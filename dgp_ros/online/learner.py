@@ -325,13 +325,16 @@ class Learner:
 
     def catch_up(self) -> int:
         """
-        Append every learned sample the model does not hold yet (``Served.catch_up``).
+        Append every learned sample the model does not hold yet (``Served.catch_up``); with
+        learning off nothing (the model that serves is the one the freeze saved).
 
         Where the parametric part carries a persistent column's couplings, the model then takes
         it refitted on the history as it is now as its prior (``Structure.follow``): a prior
         refitted at each rebase only (50 samples) answered an approach's drag 3x worse.
         """
         with self._lock:
+            if not self.config.learning:
+                return 0                # frozen: the freeze brought the model up (``switch``)
             n = self.served.catch_up(self.window, self.health, self.config.buffer_size)
             if self.served.model is not None and self.structure.follow(self._last_t):
                 self.served.remean(self.structure.frozen_prior())

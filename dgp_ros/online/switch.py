@@ -146,7 +146,7 @@ class Switch:
                 if behind:
                     self._structure.reselect_soon()
             if behind:
-                self._rebases.run()     # a rebase: what save does before it writes
+                self._rebases.run(freeze=True)     # what save does before it writes
             with lock:
                 if served.model is None or job.generation != self._refits.generation:
                     return False, 'no model to freeze'

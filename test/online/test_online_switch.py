@@ -222,3 +222,39 @@ def test_a_save_while_learning_stops_writes_the_model_that_then_serves(tmp_path)
         assert np.array_equal(saved.X_train_, est.model.X_train_)
     finally:
         est.close()
+
+
+def test_nothing_but_the_freeze_changes_a_model_that_no_longer_learns(tmp_path):
+    """
+    A rebase or an append asked for around the switch leaves the frozen model as saved.
+
+    A rebase asked for just before learning went off could start in its thread after the
+    freeze had saved the model (a learner short of CPU): the node then served a model other
+    than the saved one (seen with two suites at once).
+    """
+    from dgp_ros.online.learner import Learner
+    path = str(tmp_path / 'm.npz')
+    L = Learner(_cfg(model_path=path, refit_mode='async', buffer_size=60))
+    t, Q, T = _stream(400, seed=5)
+    try:
+        for i in range(200):
+            L.learn(t[i], Q[i], T[i])
+        assert L.wait_for_refit(60)
+        L.reconfigure(dataclasses.replace(L.config, learning=False))
+        end = time.monotonic() + 60
+        while L.status()['learning'] != 'off' and time.monotonic() < end:
+            time.sleep(0.02)
+        assert L.status()['learning'] == 'off'
+        before = L.snapshot()
+        saved = load_model(path)
+        assert np.array_equal(saved.posterior_.weights, before.model.posterior_.weights)
+        for i in range(200, 260):                    # not learned: counted
+            L.learn(t[i], Q[i], T[i])
+        L.rebases.run()                              # what a late rebase thread would do
+        L.catch_up()
+        L.poll(idle=True)
+        after = L.snapshot()
+        assert after.version == before.version
+        assert np.array_equal(after.model.posterior_.weights, saved.posterior_.weights)
+    finally:
+        L.close()
