@@ -216,7 +216,8 @@ def _baselines(out: dict, learned: list, qd_te: np.ndarray, ref_te: np.ndarray) 
                                             for j in range(N)]), ref_te)
 
 
-def arm_case(log: dict, split_s=None, baselines: bool = True, test_s=None, **params) -> dict:
+def arm_case(log: dict, split_s=None, baselines: bool = True, test_s=None, keep: bool = False,
+             **params) -> dict:
     """
     Learn ``log`` on t < split and score it (module docstring) on t >= split or ``test_s``.
 
@@ -226,7 +227,7 @@ def arm_case(log: dict, split_s=None, baselines: bool = True, test_s=None, **par
     ``parametric`` (the saved model's parametric part alone, held out), ``prior`` (with the
     elements of D from every sample, ``gp.joint_element``: its prior mean), ``elements``,
     ``structure``, ``status``, ``negative_power``, ``saved_negative_power``, ``wall_s``,
-    ``stream_s``, ``trained``.
+    ``stream_s``, ``trained``; with ``keep`` also ``model`` (the saved model, loaded).
     """
     from dgp_ros.gp import load_model
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
@@ -266,6 +267,8 @@ def arm_case(log: dict, split_s=None, baselines: bool = True, test_s=None, **par
                         rng.uniform(lo - 10 * (hi - lo), hi + 10 * (hi - lo),
                                     (N_RANDOM, lo.size))])
         out['saved_negative_power'] = C.negative_power_count(model, Qs)[1]    # beyond rounding
+        if keep:
+            out['model'] = model
     if baselines and learned:
         _baselines(out, learned, qd[te], ref[te])
     return out
@@ -388,9 +391,51 @@ def _no_harm_section(rows: list) -> list:
                                 'worst joint: prior / parametric'], table), '']
 
 
+#: the README's figure: the whole UR10 log learned on its first 60 %, its last 40 % drawn
+FIGURE = 'ur10_heldout_friction.png'
+
+
+def figure(out: str, log: dict) -> str:
+    """
+    Draw ``FIGURE`` in ``out``'s plot folder: per joint the held-out reference residual (never
+    learned) against velocity, the saved model's curve and band, its parametric part and a
+    Coulomb-viscous refit (``apps.friction_plot``); return its path.
+    """
+    from dgp_ros.apps.friction_plot import friction_curves
+    t = log['t']
+    span = float(t[-1] - t[0])
+    split = float(t[0] + 0.6 * span)
+    r = arm_case(log, split_s=split, baselines=False, keep=True)
+    te, tr = t >= split, t < split
+    model = r['model']
+    corr = getattr(model, 'correction_', None)
+    y_tr = log['ref'][tr]
+    if corr is not None and getattr(corr, 'needs_position', False):
+        y_tr = y_tr - corr.conservative(log['q'][tr])
+    path = os.path.join(C.plot_dir(out), FIGURE)
+    friction_curves(path, model, log['qd'][te], log['ref'][te], q=log['q'][te],
+                    refit_on=(log['qd'][tr], y_tr),
+                    names=log['names'], points='held-out residual (last 40 %, never learned)',
+                    title=f'real UR10, the node\'s defaults, learned on the first 60 % of the '
+                          f'log, held out on the rest: NMSE {r["mean"]:.4f}')
+    return path
+
+
+def _extra(p) -> None:
+    p.add_argument('--figure', action='store_true',
+                   help=f'only draw the README figure (docs/bench/{FIGURE}, about a minute)')
+
+
 def main(argv=None) -> int:
-    a = C.parse_args(__doc__.strip().splitlines()[0], argv)
+    a = C.parse_args(__doc__.strip().splitlines()[0], argv, _extra)
     t0 = time.perf_counter()
+    if a.figure:
+        whole = whole_log()
+        if whole is None:
+            C.log(f'{NAME}: no whole UR10 log under ../shared: no figure')
+            return 1
+        C.log(f'{NAME}: wrote {figure(a.out, whole)}')
+        return 0
     results = []
     for label, _, _ in (CASES[::2] if a.quick else CASES):
         log = family_log(label)
@@ -401,6 +446,8 @@ def main(argv=None) -> int:
     harm = [] if a.quick else [(label, no_harm(label)) for label in NO_HARM]
     whole = None if a.quick else whole_log()
     rows = [] if whole is None else curve(whole)
+    if whole is not None:
+        figure(a.out, whole)
     body = report(a, results, time.perf_counter() - t0)
     if harm:
         body += '\n'.join(_no_harm_section(harm))

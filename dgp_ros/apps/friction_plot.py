@@ -49,7 +49,9 @@ def _curves(model, qd: np.ndarray, j: int, k: int = 200):
 def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
                     q: Optional[np.ndarray] = None, names: Optional[Sequence[str]] = None,
                     confidence: Optional[Sequence[float]] = None,
-                    element_scores: Optional[Sequence[Optional[float]]] = None) -> Path:
+                    element_scores: Optional[Sequence[Optional[float]]] = None,
+                    points: str = 'learned residual', title: Optional[str] = None,
+                    refit_on: Optional[tuple] = None) -> Path:
     """
     Write ``friction_curves.png`` (module docstring) to ``path``; return it.
 
@@ -70,6 +72,13 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
     element_scores : N floats or None, optional
         Per joint the error of its element from every sample on the history's newest blocks
         over the parametric part's alone (``joint_elements`` of /diagnostics; in its title).
+    points : str
+        The legend of the samples drawn (held-out samples: say so).
+    title : str or None
+        The figure's title (default: what the curves are).
+    refit_on : (qd (m, N), residual (m, N)) or None
+        The samples the Coulomb-viscous refit learns (default: those drawn); held-out samples
+        drawn: pass the learned ones, with the correction already taken off.
 
     """
     import matplotlib
@@ -93,7 +102,7 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
     fig, axes = plt.subplots(rows, cols, figsize=(6.0 * cols, 2.9 * rows), squeeze=False)
     for j in range(N):
         ax = axes[j // cols, j % cols]
-        ax.plot(qd[:, j], y[:, j], '.', ms=2, color='0.6', alpha=0.5, label='learned residual')
+        ax.plot(qd[:, j], y[:, j], '.', ms=2, color='0.6', alpha=0.5, label=points)
         v, tau, band, prior, param = _curves(model, qd, j)
         ax.fill_between(v, band[0], band[1], color='C0', alpha=0.15, lw=0, label='model ±2σ')
         ax.plot(v, tau, color='C0', lw=1.6, label='learned model')
@@ -102,10 +111,13 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
         if has_element:
             ax.plot(v, prior, color='C1', lw=1.2, ls='-.',
                     label='parametric + element from every sample')
-        if len(qd) >= 3:
-            cv = fit_cv(qd[:, j], y[:, j])
+        rq, ry = (qd, y) if refit_on is None else (np.atleast_2d(refit_on[0]),
+                                                   np.atleast_2d(refit_on[1]))
+        if len(rq) >= 3:
+            cv = fit_cv(rq[:, j], ry[:, j])
             ax.plot(v, predict_cv(cv, v) + cv['b'], color='C3', lw=1.0, ls=':',
-                    label='Coulomb + viscous + offset refit')
+                    label='Coulomb + viscous + offset refit' +
+                          ('' if refit_on is None else ' (of the learned samples)'))
         c = '' if confidence is None or confidence[j] is None else \
             f', confidence {float(confidence[j]):.2f}'
         e = ''
@@ -120,8 +132,8 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
     for j in range(N, rows * cols):
         axes[j // cols, j % cols].set_visible(False)
     axes[0, 0].legend(loc='upper left', fontsize=7)
-    fig.suptitle('friction learned against velocity (the other joints at rest; residuals less '
-                 'the learned rigid-body correction)', fontsize=9)
+    fig.suptitle(title or 'friction learned against velocity (the other joints at rest; '
+                 'residuals less the learned rigid-body correction)', fontsize=9)
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=100)
