@@ -101,7 +101,7 @@ def test_markdown_links_resolve_inside_the_repository(md):
 def test_docs_exist_and_are_linked_from_the_readme():
     links = markdown_links((ROOT / 'README.md').read_text(encoding='utf-8'))
     for name in ('ARCHITECTURE.md', 'CONTRACTS.md', 'PASSIVITY.md', 'BENCHMARKS.md',
-                 'RELIABILITY.md'):
+                 'RELIABILITY.md', 'GUIDE.md', 'REFERENCE.md', 'CHANGELOG.md'):
         assert f'docs/{name}' in links, f'README.md does not link docs/{name}'
 
 
