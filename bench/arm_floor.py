@@ -209,8 +209,8 @@ def _probe(s, kind):
 
 
 def section(a, groups: list, wall: float, stream_text: str, profiles=(), replays=None) -> str:
-    lines = [C.header_lines('Answers at the floor: the estimator beside a bare rclpy relay '
-                            '(issues 33, 38)', 'bench/arm_floor.py', a.quick, wall), '',
+    lines = [C.header_lines('Answers at the floor: the estimator beside a bare rclpy relay',
+                            'bench/arm_floor.py', a.quick, wall), '',
              __doc__.split('\n\n', 1)[1].strip(), '', f'Stream: {stream_text}.', '']
     hdr = ['repeat', 'run', 'answered', 'latency p50 / p99 / max ms',
            'p50 / p99 vs relay', 'p99 first / last third ms',

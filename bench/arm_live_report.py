@@ -261,7 +261,7 @@ def section(a, runs: List[dict], held: Optional[dict], wall: float, names) -> st
                   'thread of the node process (DDS, the snapshot receiver).', '',
                   C.md_table(['run', 'executor us/msg', 'ours us/msg', 'process us/msg',
                               'answered', 'bg cores'], rows), '']
-    lines += ['### Targets (issue 23)', '',
+    lines += ['### Targets', '',
               C.md_table(['target', 'status', 'measured'], targets(by, held)), '']
     return '\n'.join(lines)
 

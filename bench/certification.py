@@ -32,7 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common as C  # noqa: E402
 
 NAME = 'certification'
-TITLE = 'Certified by default: accuracy on real data, proof time, violations (issue 24)'
+TITLE = 'Certified by default: accuracy on real data, proof time, violations'
 SPLIT_S = 7.5
 PRIORS = (('friction+stribeck', True), ('viscous', False))
 DATA_FILE = 'panda_log_train.npz'

@@ -69,6 +69,11 @@ def markers(name: str):
     return f'<!-- BEGIN {name} -->', f'<!-- END {name} -->'
 
 
+def anchor(name: str) -> str:
+    """The HTML anchor a section starts with: links (``BENCHMARKS.md#NAME``) survive new titles."""
+    return f'<a id="{name}"></a>'
+
+
 def write_section(out: str, name: str, body: str) -> str:
     """
     Replace the section ``name`` of ``out/BENCHMARKS.md`` by ``body`` (create file/section).
@@ -79,7 +84,7 @@ def write_section(out: str, name: str, body: str) -> str:
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, DOC_NAME)
     begin, end = markers(name)
-    block = f'{begin}\n{body.rstrip()}\n{end}'
+    block = f'{begin}\n{anchor(name)}\n{body.rstrip()}\n{end}'
     with open(path, 'a+', encoding='utf-8') as f:
         fcntl.flock(f.fileno(), fcntl.LOCK_EX)
         try:
@@ -109,7 +114,9 @@ def read_section(out: str, name: str) -> Optional[str]:
     text = open(path, encoding='utf-8').read()
     begin, end = markers(name)
     i, j = text.find(begin), text.find(end)
-    return None if i < 0 or j < i else text[i + len(begin):j]
+    if i < 0 or j < i:
+        return None
+    return text[i + len(begin):j].replace('\n' + anchor(name), '', 1)
 
 
 # ----------------------------------------------------------------------------- machine info

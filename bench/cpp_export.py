@@ -44,7 +44,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common as C  # noqa: E402
 
 NAME = 'cpp_export'
-TITLE = 'The frozen model as generated C++ (issue 43)'
+TITLE = 'The frozen model as generated C++'
 EXAMPLE = os.path.join(C.REPO, 'examples', 'cpp', 'friction_along_log.cpp')
 SHARED = [os.path.join(C.REPO, '..', 'shared', 'data'), '/work/shared/data']
 

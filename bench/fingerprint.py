@@ -247,7 +247,7 @@ def compare(a: str, b: str, section: bool = False) -> int:
         sys.path.insert(0, HERE)
         import common as C
         body = '\n'.join([
-            C.header_lines(f'Fingerprints: {ca} against {cb} (issue 47)',
+            C.header_lines(f'Fingerprints: {ca} against {cb}',
                            'bench/fingerprint.py --compare A B --section', False).rstrip(), '',
             'Every case in line with the defaults (module docstring of bench/fingerprint.py); '
             'sha256 (first 16 hex digits) of every answer one step ahead, of the saved model '

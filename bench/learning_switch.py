@@ -41,7 +41,7 @@ import common as C  # noqa: E402
 from certification import panda_dir  # noqa: E402,I100
 
 NAME = 'learning_switch'
-TITLE = 'The learning switch live: the real Panda stream, learning off and on (issue 37)'
+TITLE = 'The learning switch live: the real Panda stream, learning off and on'
 BIN = os.path.dirname(sys.executable)
 PROCS = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'live_procs.py')
 NAMES = [f'panda_joint{j}' for j in range(1, 8)]

@@ -53,7 +53,7 @@ import common as C  # noqa: E402
 from certification import _extra  # noqa: E402,I100,I201
 
 NAME = 'ledger'
-TITLE = "Accuracy ledger: the A320 and the arm with the node's defaults (issue 30)"
+TITLE = "Accuracy ledger: the A320 and the arm with the node's defaults"
 A320_EARLY_S = 20.0
 SPLIT_S = 7.5
 SIM_S = 20.0

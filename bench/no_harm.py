@@ -53,7 +53,7 @@ def _f(v, d=2) -> str:
 
 
 def report(a, res: dict, wall: float) -> str:
-    lines = [C.header_lines('Do no harm: the closed-loop transient, a restart (issue 36)',
+    lines = [C.header_lines('Do no harm: the closed-loop transient, a restart',
                             'bench/no_harm.py', a.quick, wall),
              'Each run is `dgp-demo --robot R --closed-loop` with its defaults '
              f'({DURATION_S:g} s, learn {LEARN_S:g} s; `--quick`: shorter), the controller '

@@ -35,7 +35,7 @@ import common as C  # noqa: E402
 from certification import _extra, panda_dir  # noqa: E402,I100,I201
 
 NAME = 'residual'
-TITLE = 'Real-arm residual with the defaults: selection, correction, held out (issue 22)'
+TITLE = 'Real-arm residual with the defaults: selection, correction, held out'
 SPLIT_S = 7.5
 A320_SETTINGS = (('defaults (prior=auto)', {}),
                  ('prior=viscous bias=false', {'prior': 'viscous', 'bias': False}),

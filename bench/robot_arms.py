@@ -393,7 +393,7 @@ def main(argv=None) -> int:
                         'its reason', 'met' if ok else '**missed**',
                         f'level {raw["level"]}, learned qd.tau < 0 on '
                         f'{100 * raw["learned_neg"]:.0f} %: "{_cell(why, 200)}"'])
-    L.append('### Targets (issue 14, "Done when")\n')
+    L.append('### Targets\n')
     L.append('The live-node target (the same through the node fed by `dgp-play`) and the README '
              'target are checked by the tests, not here.\n')
     L.append(C.md_table(['target', 'status', 'measured'], targets))

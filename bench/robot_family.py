@@ -52,7 +52,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common as C  # noqa: E402
 
 NAME = 'robot_family'
-TITLE = "The robot family with the node's defaults: real arms held out (issue 42)"
+TITLE = "The robot family with the node's defaults: real arms held out"
 #: the shared real logs: file, plugin module, joint names, the learning split (s)
 ARMS = {
     'panda_real': ('panda_log_train.npz', 'panda_rb',

@@ -5,7 +5,8 @@ The repository documents itself: no pointer to a design file outside it, no dead
   docs/ARCHITECTURE.md and docs/CONTRACTS.md);
 * README.md names nothing under ``../shared`` and no ``DESIGN.md``;
 * every relative markdown link (and image) in README.md and docs/*.md resolves to an existing
-  path inside the repository.
+  path inside the repository, and every anchor (``#part``, ``FILE.md#part``) to a heading of
+  that page (GitHub's slug) or an ``<a id="part">`` in it.
 
 The checks are functions of their inputs, and each is also run on a bad example, so that a
 check that can no longer fail is noticed.
@@ -105,6 +106,37 @@ def test_docs_exist_and_are_linked_from_the_readme():
         assert f'docs/{name}' in links, f'README.md does not link docs/{name}'
 
 
+def slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens."""
+    text = _CODE_SPAN.sub(lambda m: m.group(0)[1:-1], heading.strip()).lower()
+    return re.sub(r'[^\w\- ]', '', text).replace(' ', '-')
+
+
+def anchors(md: Path) -> set:
+    """Return the anchors a markdown page has: its headings' slugs and its ``<a id>``s."""
+    text = _FENCE.sub('', md.read_text(encoding='utf-8'))
+    out = {slug(h) for h in re.findall(r'^#{1,6} +(.+?) *#*$', text, re.M)}
+    return out | set(re.findall(r'<a id="([^"]+)">', text))
+
+
+def dead_anchors(md: Path) -> list:
+    """Return the links of ``md`` whose anchor its target page (md itself for ``#x``) lacks."""
+    bad = []
+    for target in markdown_links(md.read_text(encoding='utf-8')):
+        if re.match(r'^[a-zA-Z][a-zA-Z0-9+.-]*:', target) or '#' not in target:
+            continue
+        path, part = target.split('#', 1)
+        page = md if not path else (md.parent / path).resolve()
+        if page.suffix == '.md' and page.exists() and part not in anchors(page):
+            bad.append(target)
+    return bad
+
+
+@pytest.mark.parametrize('md', _docs(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_anchors_resolve_to_a_heading(md):
+    assert dead_anchors(md) == []
+
+
 # ------------------------------------------------------------------------- the checks can fail
 def test_checks_find_what_they_are_for(tmp_path):
     repo = tmp_path / 'repo'
@@ -121,3 +153,8 @@ def test_checks_find_what_they_are_for(tmp_path):
     subprocess.run(['git', 'init', '-q'], cwd=repo, check=True)
     subprocess.run(['git', 'add', 'README.md'], cwd=repo, check=True)
     assert tracked_files(repo) == [md]
+
+    (repo / 'docs' / 'here.md').write_text('# A `part`: here\n<a id="kept"></a>\n')
+    md.write_text('## Top\n[a](#top) [b](docs/here.md#a-part-here) [c](docs/here.md#kept) '
+                  '[d](#bottom) [e](docs/here.md#part)\n')
+    assert dead_anchors(md) == ['#bottom', 'docs/here.md#part']
