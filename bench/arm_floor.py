@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Answers at the floor (issue 33): the estimator beside a bare rclpy relay, in the same harness.
+Answers at the floor: the estimator beside a bare rclpy relay, in the same harness.
 
 Each repeat plays the same stream twice or more, one process set each (``arm_live.run_one``):
 into a bare rclpy relay (``live_procs.py relay``: subscribe JointState, publish JointState), then

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-A 7-joint arm at 1 kHz, live: a player, the estimator node and a listener over real DDS (issue 23).
+A 7-joint arm at 1 kHz, live: a player, the estimator node and a listener over real DDS.
 
 Every scenario is its own set of processes (``live_procs.py``): a player publishing a simulated
 Panda's raw /joint_states (7 joints and a finger joint, stamps on the wall clock) at absolute

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Certified by default (issue 24): accuracy on real data, certification time, violations.
+Certified by default: accuracy on real data, certification time, violations.
 
 1. Real Franka Panda friction residual (``panda_log_train.npz`` of the shared ``panda_real``
    folder; ``--data`` or env ``DGP_PANDA_REAL``, default ``<repo>/../shared/data/panda_real``, then

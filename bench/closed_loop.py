@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Closed-loop friction compensation on the simulated arm, measured (issue 32).
+Closed-loop friction compensation on the simulated arm, measured.
 
 Per robot (Panda, UR5), in process and lock-step (``dgp_ros.apps.loop_run``: the estimator with
 the node's defaults except ``refit_mode='sync'``), the same reference path and seed:

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-The frozen model as generated C++ (issue 43): equality with Python and the node, time per call.
+The frozen model as generated C++: equality with Python and the node, time per call.
 
 For each model: learn it with the node's defaults in line (``refit_mode='sync'``), save it, export
 it (``dgp_ros.export``: proven at export as the frozen node proves a file), compile the header

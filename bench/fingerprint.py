@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Fingerprints of what the estimator answers: a refactoring must not change one bit (issue 47).
+Fingerprints of what the estimator answers: a refactoring must not change one bit.
 
 Every case runs the estimator in line (``refit_mode='sync'``: deterministic) with the node's
 defaults and hashes (sha256) what a user gets from it:

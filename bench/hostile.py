@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Hostile input: the adversarial trial of the hardening issue (issue 18), repeatable by one command.
+Hostile input against the node, dgp-replay and dgp-export, repeatable by one command.
 
     python bench/hostile.py [--quick] [--out DIR] [--no-live]
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-The learning switch live (issue 37): a node learning the real Panda stream, switched off and on.
+The learning switch live: a node learning the real Panda stream, switched off and on.
 
 The real Panda's friction residual (``live_procs.real_stream``: the shared log's first 7.5 s,
 looped at the logger's own timing, ~1 kHz, 7 joints; read there, never copied) is played into

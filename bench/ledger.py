@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-The accuracy ledger: both worlds with the node's defaults, one row per commit (issue 30).
+The accuracy ledger: both worlds with the node's defaults, one row per commit.
 
 Every case runs the estimator with the node's defaults in line (``refit_mode='sync'``: the same
 learner as the node, deterministic), and scores what a user gets, never the error on samples

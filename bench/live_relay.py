@@ -1,5 +1,5 @@
 """
-The floor of bench/arm_floor.py (issue 33): relays, the role ``relay`` of ``live_procs.py``.
+The floor of bench/arm_floor.py: relays, the role ``relay`` of ``live_procs.py``.
 
 A relay answers each measurement with a JointState on the estimator's answer topic and does
 nothing else: what any rclpy node pays per message. ``DGP_RELAY`` chooses which:

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Do no harm: the closed-loop learning transient and a restart without the model (issue 36).
+Do no harm: the closed-loop learning transient and a restart without the model.
 
 Per robot (Panda, UR5), exactly the runs of ``dgp-demo --robot R --closed-loop`` with its
 defaults (``dgp_ros.apps.loop_demo``: 12 s, the sigmoid fitted on the first 8 s, the estimator

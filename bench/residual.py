@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Real-arm accuracy with the defaults (issue 22): what the structure selection picks, held out.
+Real-arm accuracy with the defaults: what the structure selection picks, held out.
 
 1. Real Franka Panda (``panda_log_train.npz`` of the shared ``panda_real`` folder, see
    ``certification.py`` for where it is looked up; skipped with the reason when absent): a bag of

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Real robot arms: raw /joint_states in, passive friction out (issue 14, point 6).
+Real robot arms: raw /joint_states in, passive friction out.
 
 Data: ``dgp_ros.dynamics.simulate_arm`` (Panda, 7 joints; UR5, 6 joints): 20 s at 1 kHz with
 jittered stamps, raw joint torques = rigid body (pinocchio RNEA on the example-robot-data URDF)

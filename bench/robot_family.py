@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-The robot family with the node's defaults: real arms at their own rates and resampled (issue 42).
+The robot family with the node's defaults: real arms at their own rates and resampled.
 
 One robot is not the robots. Each case streams a real arm's raw joint states (stamped as the
 log's bag, ``make_bag.py``: 1.7e9 s + t) through the estimator in line (``refit_mode='sync'``:

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-Soak / load test of the online estimator (issue 8, item 4).
+Soak / load test of the online estimator.
 
 Drives :class:`dgp_ros.online.OnlineEstimator` in-process with a paced stream (default 1 kHz for
 60 s, buffer 1000, async refits), and optionally the ``dgp_estimator`` node over DDS (``--node``:

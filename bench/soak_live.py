@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """
-An hour at 1 kHz over DDS: the node as a user starts it, its memory against time (issue 67).
+An hour at 1 kHz over DDS: the node as a user starts it, its memory against time.
 
 Three processes besides this one, DDS isolated (a random ``ROS_DOMAIN_ID``, localhost only):
 
