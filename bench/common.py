@@ -70,7 +70,7 @@ def markers(name: str):
 
 
 def anchor(name: str) -> str:
-    """The HTML anchor a section starts with: links (``BENCHMARKS.md#NAME``) survive new titles."""
+    """Return the anchor a section starts with (``BENCHMARKS.md#NAME`` outlives its title)."""
     return f'<a id="{name}"></a>'
 
 

@@ -397,9 +397,11 @@ FIGURE = 'ur10_heldout_friction.png'
 
 def figure(out: str, log: dict) -> str:
     """
-    Draw ``FIGURE`` in ``out``'s plot folder: per joint the held-out reference residual (never
-    learned) against velocity, the saved model's curve and band, its parametric part and a
-    Coulomb-viscous refit (``apps.friction_plot``); return its path.
+    Draw ``FIGURE`` in ``out``'s plot folder; return its path.
+
+    Per joint the held-out reference residual (never learned) against velocity, the saved
+    model's curve and band, its parametric part and a Coulomb-viscous refit of the learned
+    samples (``apps.friction_plot``).
     """
     from dgp_ros.apps.friction_plot import friction_curves
     t = log['t']
@@ -416,7 +418,7 @@ def figure(out: str, log: dict) -> str:
     friction_curves(path, model, log['qd'][te], log['ref'][te], q=log['q'][te],
                     refit_on=(log['qd'][tr], y_tr),
                     names=log['names'], points='held-out residual (last 40 %, never learned)',
-                    title=f'real UR10, the node\'s defaults, learned on the first 60 % of the '
+                    title="real UR10, the node's defaults, learned on the first 60 % of the "
                           f'log, held out on the rest: NMSE {r["mean"]:.4f}')
     return path
 

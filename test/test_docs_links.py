@@ -107,7 +107,7 @@ def test_docs_exist_and_are_linked_from_the_readme():
 
 
 def slug(heading: str) -> str:
-    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens."""
+    """Return GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens."""
     text = _CODE_SPAN.sub(lambda m: m.group(0)[1:-1], heading.strip()).lower()
     return re.sub(r'[^\w\- ]', '', text).replace(' ', '-')
 

@@ -325,8 +325,9 @@ class Learner:
 
     def catch_up(self) -> int:
         """
-        Append every learned sample the model does not hold yet (``Served.catch_up``); with
-        learning off nothing (the model that serves is the one the freeze saved).
+        Append every learned sample the model does not hold yet (``Served.catch_up``).
+
+        With learning off nothing: the model that serves is the one the freeze saved.
 
         Where the parametric part carries a persistent column's couplings, the model then takes
         it refitted on the history as it is now as its prior (``Structure.follow``): a prior
