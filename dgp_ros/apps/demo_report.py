@@ -158,7 +158,7 @@ def print_summary(res: dict, diag: Optional[dict], wall_s: float) -> None:
     print('\n=== dgp_ros demo summary ' + '=' * 50)
     print(f'wall time {wall_s:.1f} s; measurements {res["measurements"]}, answers '
           f'{res["answers"]}, measurements answered {res["paired"]} '
-          f'({100 * res.get("answered_fraction", 0):.1f} %; {res.get("answers_to_unseen", 0)} '
+          f'({100 * res.get("answered_fraction", 0):.2f} %; {res.get("answers_to_unseen", 0)} '
           f'answers to measurements sent before this listener connected), damping matrices '
           f'{res["matrices"]}')
     if 'nmse' in res:

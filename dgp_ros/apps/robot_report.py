@@ -369,7 +369,7 @@ def print_summary(res: dict) -> None:
     L = res['latency_ms']
     print(f'stream: {res["published"]} measurements published, {res["measurements_received"]} '
           f'received by the listener, {res["answers"]} answers: answered '
-          f'{100 * res["answered_fraction"]:.1f} %')
+          f'{100 * res["answered_fraction"]:.2f} %')
     if L['median'] is not None:
         print(f'end-to-end latency (listener: measurement -> answer): median {L["median"]:.2f} '
               f'ms, p99 {L["p99"]:.2f} ms')
