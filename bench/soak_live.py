@@ -203,6 +203,8 @@ def run(a, work: str) -> dict:
            '-p', 'inverse_dynamics:=urdf', '-p', f'urdf_file:={example_robot_urdf("panda")}',
            '-p', f'joints:={json.dumps(names)}', '-p', f'model_path:={f("soak.npz")}']
     me = [sys.executable, os.path.abspath(__file__)]
+    # a SIGTERM to the harness stops its processes too (they run in sessions of their own)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     procs = {}
     logs = [open(f(n + '.log'), 'w') for n in ('estimator', 'listener', 'player')]
     procs['node'] = subprocess.Popen([sys.executable, '-m', 'dgp_ros.nodes.estimator'] + ros,
@@ -234,6 +236,8 @@ def run(a, work: str) -> dict:
                 time.sleep(0.5)
         time.sleep(2.0)
     finally:
+        if procs['player'].poll() is None:          # interrupted: the stream stops first
+            procs['player'].send_signal(signal.SIGTERM)
         procs['listener'].send_signal(signal.SIGTERM)
         procs['node'].send_signal(signal.SIGINT)
         out = {}
