@@ -120,12 +120,12 @@ def whole_log(name: str = 'ur10_real') -> Optional[dict]:
     return log
 
 
-def curve(log: dict) -> list:
+def curve(log: dict, keep: bool = False) -> list:
     """Learn ``log``'s first 20 / 40 / 60 % (``CURVE``), score each on its last 40 %."""
     t = log['t']
     span = float(t[-1] - t[0])
     return [(f, arm_case(log, split_s=float(t[0] + f * span),
-                         test_s=float(t[0] + 0.6 * span))) for f in CURVE]
+                         test_s=float(t[0] + 0.6 * span), keep=keep)) for f in CURVE]
 
 
 def _curve_section(rows: list) -> list:
@@ -395,28 +395,24 @@ def _no_harm_section(rows: list) -> list:
 FIGURE = 'ur10_heldout_friction.png'
 
 
-def figure(out: str, log: dict) -> str:
+def figure(out: str, log: dict, r: Optional[dict] = None) -> str:
     """
     Draw ``FIGURE`` in ``out``'s plot folder; return its path.
 
     Per joint the held-out reference residual (never learned) against velocity, the saved
     model's curve and band, its parametric part and a Coulomb-viscous refit of the learned
-    samples (``apps.friction_plot``).
+    samples (``apps.friction_plot``). ``r``: the learning curve's 60 % case, learned with
+    ``keep`` (else it is learned here).
     """
     from dgp_ros.apps.friction_plot import friction_curves
     t = log['t']
-    span = float(t[-1] - t[0])
-    split = float(t[0] + 0.6 * span)
-    r = arm_case(log, split_s=split, baselines=False, keep=True)
+    split = float(t[0] + 0.6 * float(t[-1] - t[0]))
+    if r is None:
+        r = arm_case(log, split_s=split, baselines=False, keep=True)
     te, tr = t >= split, t < split
-    model = r['model']
-    corr = getattr(model, 'correction_', None)
-    y_tr = log['ref'][tr]
-    if corr is not None and getattr(corr, 'needs_position', False):
-        y_tr = y_tr - corr.conservative(log['q'][tr])
     path = os.path.join(C.plot_dir(out), FIGURE)
-    friction_curves(path, model, log['qd'][te], log['ref'][te], q=log['q'][te],
-                    refit_on=(log['qd'][tr], y_tr),
+    friction_curves(path, r['model'], log['qd'][te], log['ref'][te], q=log['q'][te],
+                    refit_on=(log['qd'][tr], log['ref'][tr], log['q'][tr]),
                     names=log['names'], points='held-out residual (last 40 %, never learned)',
                     title="real UR10, the node's defaults, learned on the first 60 % of the "
                           f'log, held out on the rest: NMSE {r["mean"]:.4f}')
@@ -447,9 +443,9 @@ def main(argv=None) -> int:
         results.append((label, r))
     harm = [] if a.quick else [(label, no_harm(label)) for label in NO_HARM]
     whole = None if a.quick else whole_log()
-    rows = [] if whole is None else curve(whole)
-    if whole is not None:
-        figure(a.out, whole)
+    rows = [] if whole is None else curve(whole, keep=True)
+    if rows:
+        figure(a.out, whole, dict(rows)[0.6])
     body = report(a, results, time.perf_counter() - t0)
     if harm:
         body += '\n'.join(_no_harm_section(harm))

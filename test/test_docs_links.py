@@ -28,6 +28,8 @@ _NOT_SOURCES = {'.git', '.venv', 'build', 'install', 'log', 'out', '__pycache__'
 _FENCE = re.compile(r'^(```|~~~).*?^\1', re.M | re.S)
 _CODE_SPAN = re.compile(r'`[^`\n]*`')
 _LINK = re.compile(r'!?\[[^\]\n]*\]\(\s*<?([^)\s>]+)>?(?:\s+"[^"]*")?\s*\)')
+#: a link with a scheme (``https:``, ``mailto:``): not a file of the repository
+_URL = re.compile(r'^[a-zA-Z][a-zA-Z0-9+.-]*:')
 
 
 def tracked_files(root: Path) -> list:
@@ -65,7 +67,7 @@ def dead_links(md: Path, root: Path) -> list:
     """
     bad = []
     for target in markdown_links(md.read_text(encoding='utf-8')):
-        if re.match(r'^[a-zA-Z][a-zA-Z0-9+.-]*:', target) or target.startswith('#'):
+        if _URL.match(target) or target.startswith('#'):
             continue
         path = re.split(r'[#?]', target, maxsplit=1)[0]
         resolved = (md.parent / path).resolve()
@@ -123,7 +125,7 @@ def dead_anchors(md: Path) -> list:
     """Return the links of ``md`` whose anchor its target page (md itself for ``#x``) lacks."""
     bad = []
     for target in markdown_links(md.read_text(encoding='utf-8')):
-        if re.match(r'^[a-zA-Z][a-zA-Z0-9+.-]*:', target) or '#' not in target:
+        if _URL.match(target) or '#' not in target:
             continue
         path, part = target.split('#', 1)
         page = md if not path else (md.parent / path).resolve()

@@ -46,6 +46,15 @@ def _curves(model, qd: np.ndarray, j: int, k: int = 200):
     return v, tau[:, j] + off, band, mean.force(V)[:, j] + off, base.force(V)[:, j] + off
 
 
+def _less_correction(model, residual: np.ndarray, q) -> np.ndarray:
+    """Return ``residual`` (n, N) less the model's learned conservative correction at ``q``."""
+    y = np.atleast_2d(residual).copy()
+    corr = getattr(model, 'correction_', None)
+    if corr is not None and q is not None and getattr(corr, 'needs_position', False):
+        y = y - corr.conservative(np.atleast_2d(q))
+    return y
+
+
 def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
                     q: Optional[np.ndarray] = None, names: Optional[Sequence[str]] = None,
                     confidence: Optional[Sequence[float]] = None,
@@ -76,9 +85,9 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
         The legend of the samples drawn (held-out samples: say so).
     title : str or None
         The figure's title (default: what the curves are).
-    refit_on : (qd (m, N), residual (m, N)) or None
-        The samples the Coulomb-viscous refit learns (default: those drawn); held-out samples
-        drawn: pass the learned ones, with the correction already taken off.
+    refit_on : (qd (m, N), residual (m, N), q (m, N) or None) or None
+        The samples the Coulomb-viscous refit learns (default: those drawn; their correction is
+        taken off as the drawn ones'); held-out samples drawn: pass the learned ones.
 
     """
     import matplotlib
@@ -91,10 +100,9 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
     qd, residual = np.atleast_2d(qd), np.atleast_2d(residual)
     N = qd.shape[1]
     names = list(names) if names else [f'q{j}' for j in range(N)]
-    y = residual.copy()
-    corr = getattr(model, 'correction_', None)
-    if corr is not None and q is not None and getattr(corr, 'needs_position', False):
-        y = y - corr.conservative(np.atleast_2d(q))
+    y = _less_correction(model, residual, q)
+    rq, ry = (qd, y) if refit_on is None else (np.atleast_2d(refit_on[0]),
+                                               _less_correction(model, *refit_on[1:]))
     post = model.posterior_
     choice = row_choices(post.structure, post.hyper)
     cols = 1 if N <= 2 else 2
@@ -111,8 +119,6 @@ def friction_curves(path, model, qd: np.ndarray, residual: np.ndarray,
         if has_element:
             ax.plot(v, prior, color='C1', lw=1.2, ls='-.',
                     label='parametric + element from every sample')
-        rq, ry = (qd, y) if refit_on is None else (np.atleast_2d(refit_on[0]),
-                                                   np.atleast_2d(refit_on[1]))
         if len(rq) >= 3:
             cv = fit_cv(rq[:, j], ry[:, j])
             ax.plot(v, predict_cv(cv, v) + cv['b'], color='C3', lw=1.0, ls=':',

@@ -114,9 +114,6 @@ class Rebases:
             self._wanted.clear()
             self.run()
 
-    # a rebase asked for just before learning was switched off can start in its thread after
-    # the freeze saved the model: only the freeze rebases a model that no longer learns
-
     # ------------------------------------------------------------------ the rebase
     def run(self, freeze: bool = False) -> None:
         """
