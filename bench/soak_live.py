@@ -49,6 +49,9 @@ TITLE = 'An hour at 1 kHz: memory against time'
 CYCLE_S = 10.0                      # the simulated arm's task cycle (s)
 #: the answers' age histogram: bin edges (ms)
 AGE_EDGES_MS = np.r_[0.0, np.geomspace(0.05, 2000.0, 60), np.inf]
+#: the /diagnostics keys the listener records once a period (what the served model is)
+TIMELINE_KEYS = ('structure', 'elements', 'joint_elements', 'buffer_fill', 'refits_ok',
+                 'memory', 'answers_by_guarantee')
 
 
 def _extra(p):
@@ -126,7 +129,8 @@ def listener(a) -> None:
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('soak_listener', context=ctx)
     st = {'answers': 0, 'negative_power': 0, 'non_finite': 0, 'max_gap_s': 0.0,
-          'diagnostics': 0, 'warn_periods': 0, 'last_diag': {}, 'warn_kinds': {}}
+          'diagnostics': 0, 'warn_periods': 0, 'last_diag': {}, 'warn_kinds': {},
+          'timeline': []}
     hist = np.zeros(len(AGE_EDGES_MS) - 1, np.int64)
     last = [None]
 
@@ -157,6 +161,11 @@ def listener(a) -> None:
                     kinds[s.message[:50]] = kinds.get(s.message[:50], 0) + 1
                 st['last_diag'] = dict({kv.key: kv.value for kv in s.values},
                                        message=s.message, level=level)
+                tl = st['timeline']
+                if not tl or time.time() - tl[-1]['t'] >= a.sample_s:
+                    # what the learner serves, a period at a time (bounded: one per period)
+                    d = st['last_diag']
+                    tl.append(dict({k: d.get(k) for k in TIMELINE_KEYS}, t=time.time()))
 
     sub = node.create_subscription(JointState, TOPIC_OUT, lambda m: None,
                                    QoSProfile(depth=1000), raw=True)
@@ -188,6 +197,18 @@ def _rss_mib(pid: int) -> float:
     return float('nan')
 
 
+def _anon_mib(pid: int) -> float:
+    """Anonymous memory of process ``pid`` (MiB; the heap and arenas, not mapped files)."""
+    try:
+        with open(f'/proc/{pid}/smaps_rollup') as f:
+            for line in f:
+                if line.startswith('Anonymous:'):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float('nan')
+
+
 def run(a, work: str) -> dict:
     from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf
     env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_DOMAIN_ID=str(random.randint(150, 230)),
@@ -210,7 +231,8 @@ def run(a, work: str) -> dict:
     procs['node'] = subprocess.Popen([sys.executable, '-m', 'dgp_ros.nodes.estimator'] + ros,
                                      env=est_env, stdout=logs[0], stderr=subprocess.STDOUT,
                                      start_new_session=True, cwd=work)
-    procs['listener'] = subprocess.Popen(me + ['--role', 'listener', '--file', f('lis.json')],
+    procs['listener'] = subprocess.Popen(me + ['--role', 'listener', '--file', f('lis.json'),
+                                               '--sample-s', str(a.sample_s)],
                                          env=env, stdout=logs[1], stderr=subprocess.STDOUT,
                                          start_new_session=True, cwd=work)
     time.sleep(2.0)
@@ -226,7 +248,9 @@ def run(a, work: str) -> dict:
                 raise RuntimeError(f'the node ended (see {f("estimator.log")})')
             learners = learner_pids(procs['node'].pid)
             row = {'t': time.monotonic() - t0,
-                   'learner': sum(_rss_mib(p) for p in learners) if learners else float('nan')}
+                   'learner': sum(_rss_mib(p) for p in learners) if learners else float('nan'),
+                   'learner_anon': sum(_anon_mib(p) for p in learners) if learners
+                   else float('nan')}
             row.update({k: _rss_mib(p.pid) for k, p in procs.items()})
             samples.append(row)
             C.log(f'{SECTION}: {row["t"]:.0f} s ' + ' '.join(
