@@ -49,8 +49,8 @@ def _timed_stream(t, Q, T, names) -> dict:
     the weighing and its learning), and the gate's answer from the same snapshot.
     """
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
-    from dgp_ros.online.answer import answer
-    from dgp_ros.online.stream_part import StreamPart
+    from dgp_ros.online.path.gate import answer
+    from dgp_ros.online.path.stream_part import StreamPart
     est = OnlineEstimator(EstimatorConfig(refit_mode='sync'))
     L = est.learner
     part = StreamPart(Q.shape[1])

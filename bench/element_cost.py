@@ -99,7 +99,7 @@ def answer_cost() -> dict:
     from dgp_ros.gp.joint_element import JointElementMean, M_BASIS, VelocityBasis
     from dgp_ros.gp.means import BasisFrictionMean
     from dgp_ros.dynamics.parametric import EPS_S, F, FRICTION_EPS, STRIBECK_VS
-    from dgp_ros.online.plan import AnswerPlan
+    from dgp_ros.online.learner.plan import AnswerPlan
     rng = np.random.default_rng(1)
     Qd = rng.normal(0.0, 0.8, (200, N))
     Tau = 0.4 * np.tanh(Qd / 0.02) + 0.3 * Qd + 0.02 * rng.normal(size=Qd.shape)

@@ -173,7 +173,7 @@ def main(argv=None) -> int:
         R['touched'] = sorted(set(touched0) | set(touched(before, after)))
         # findings that the numbers show
         lv = R.get('live') or {}
-        from dgp_ros.online.clock import STALLED_STAMPS as stalled
+        from dgp_ros.online.path.clock import STALLED_STAMPS as stalled
         st = R['stamps']
         if st['after']['clock'] == 'arrival' and 'stamps do not advance' in \
                 st['after']['message']:

@@ -332,7 +332,7 @@ def estimator(a, ros_args) -> int:
     # model swaps as the message path sees them: the first answer from each new snapshot
     swaps = []
     try:
-        from dgp_ros.online import estimator as OE
+        from dgp_ros.online.path import estimator as OE
         est_fn = OE.OnlineEstimator._estimate
 
         def estimate(self, snap, Q):

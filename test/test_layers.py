@@ -11,7 +11,11 @@ time is not an import and is not seen):
   ``bags/cli.py`` (the rclpy player and recorder, and their command line);
 * the GP numerics stand alone: ``dgp_ros/gp`` imports nothing from the rest of the package;
 * no import circles among the modules of ``dgp_ros`` and ``sim_bridge``: no strongly connected
-  component of the import graph has two modules or more.
+  component of the import graph has two modules or more;
+* the online learner's rooms keep their order: a module of ``dgp_ros/online/<room>`` imports
+  only its own room and the ones before it (``ONLINE_ROOMS``), a module at ``online/``'s top
+  (``config``, ``memtrace``) no room; the package's ``__init__`` (the public names) may import
+  any.
 
 Each check is a function of a source tree and is also run on a planted violation, so that a
 check that can no longer fail is noticed.
@@ -30,6 +34,9 @@ ROS_ALLOWED = ('dgp_ros/bags/ros.py', 'dgp_ros/bags/cli.py')
 ROS_NAMES = ('rclpy', 'launch_ros', 'ament_index_python', 'message_filters', 'tf2_ros')
 ROS_PREFIXES = ('rclpy', 'rosidl', 'rmw')
 ROS_SUFFIXES = ('_msgs', '_srvs', '_interfaces')
+#: the online learner's rooms by who runs the code, in order (docs/ARCHITECTURE.md, "Layers"):
+#: what replaces the served model, the learner's state, the learner process, the message path
+ONLINE, ONLINE_ROOMS = 'dgp_ros.online', ('jobs', 'learner', 'process', 'path')
 
 
 # ----------------------------------------------------------------------------- reading
@@ -106,6 +113,23 @@ def outward_imports(root: Path, inner: str = 'dgp_ros.gp', top: str = 'dgp_ros')
     return bad
 
 
+def room_violations(root: Path, package: str = ONLINE, rooms=ONLINE_ROOMS) -> dict:
+    """Return ``{module: [targets]}``: modules of ``package`` importing a room after their own."""
+    def rank(name: str) -> int:                   # -1: the package's top modules
+        first = name[len(package) + 1:].split('.')[0]
+        return rooms.index(first) if first in rooms else -1
+
+    bad = {}
+    for name, p in sources(root, (package.replace('.', '/'),)).items():
+        if name == package:
+            continue
+        out = sorted({m for m in imports(root, p) if m.startswith(package + '.') and
+                      rank(m) > rank(name)})
+        if out:
+            bad[name] = out
+    return bad
+
+
 def import_graph(root: Path, packages=PACKAGES) -> dict:
     """Return ``{module: {modules of the packages it imports}}`` (named targets only)."""
     mods = sources(root, packages)
@@ -146,7 +170,7 @@ def circles(graph: dict) -> list:
 
 # ----------------------------------------------------------------------------- the package
 def test_the_layers_below_the_nodes_import_no_ros():
-    assert len(list((ROOT / 'dgp_ros' / 'online').glob('*.py'))) > 10
+    assert len(list((ROOT / 'dgp_ros' / 'online').rglob('*.py'))) > 10
     assert ros_imports(ROOT) == {}
     # the two that may, do: the check sees an rclpy import where there is one
     assert set(ros_imports(ROOT, allowed=())) == set(ROS_ALLOWED)
@@ -154,6 +178,13 @@ def test_the_layers_below_the_nodes_import_no_ros():
 
 def test_gp_imports_nothing_from_the_rest_of_the_package():
     assert outward_imports(ROOT) == {}
+
+
+def test_the_online_rooms_import_only_the_rooms_before_them():
+    online = ROOT / 'dgp_ros' / 'online'
+    rooms = [d.name for d in online.iterdir() if (d / '__init__.py').exists()]
+    assert sorted(rooms) == sorted(ONLINE_ROOMS)
+    assert room_violations(ROOT) == {}
 
 
 def test_no_import_circles():
@@ -177,6 +208,13 @@ PLANTED = {
     'pkg/a.py': 'from .b import y\nx = 1\n',
     'pkg/b.py': 'y = 2\n\n\ndef f():\n    from pkg import a  # noqa\n',
     'pkg/c.py': 'from pkg.a import x\n',
+    'pkg/on/__init__.py': 'from .top import t\nfrom .late.m import z\n',
+    'pkg/on/top.py': 't = 1\n',
+    'pkg/on/early/__init__.py': '',
+    'pkg/on/early/e.py': 'from ..top import t\n\n\ndef f():\n    from ..late import n  # noqa\n',
+    'pkg/on/late/__init__.py': '',
+    'pkg/on/late/m.py': 'from ..early.e import f\nfrom . import n\nz = 1\n',
+    'pkg/on/late/n.py': '',
 }
 
 
@@ -207,6 +245,17 @@ def test_the_ros_check_finds_a_planted_rclpy_import(tmp_path):
 def test_the_gp_check_finds_a_planted_outward_import(tmp_path):
     root = _planted(tmp_path)
     assert outward_imports(root, 'pkg.gp', 'pkg') == {'pkg.gp.core': ['pkg.dyn', 'pkg.dyn.model']}
+
+
+def test_the_rooms_check_finds_a_planted_import_of_a_later_room(tmp_path):
+    root = _planted(tmp_path)
+    # early imports late inside a function: found; late importing early, its own room, the top,
+    # and the package's __init__ importing a room are not violations
+    assert room_violations(root, 'pkg.on', ('early', 'late')) == {
+        'pkg.on.early.e': ['pkg.on.late', 'pkg.on.late.n']}
+    (root / 'pkg/on/top.py').write_text('from .early import e  # noqa\n')
+    assert set(room_violations(root, 'pkg.on', ('early', 'late'))) == {
+        'pkg.on.early.e', 'pkg.on.top'}
 
 
 def test_the_circle_check_finds_a_planted_circle(tmp_path):

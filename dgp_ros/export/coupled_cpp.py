@@ -14,7 +14,7 @@ its fallback and the gate, this prior's (force, matrix) enter instead, as in Pyt
 * ``blend`` (``gp.blend.blend``, non-diagonal branch): joint by joint toward
   ``prior_answer(mean, qd, a)`` (the force times the gains, projected; its matrix row-scaled
   plus that projection's ``lam I``), then the blend projected onto ``qd . tau >= 0``;
-* the gate (``online/answer.py``): the fallback ``prior_answer(mean, qd, gain)``, and the
+* the gate (``online/path/gate.py``): the fallback ``prior_answer(mean, qd, gain)``, and the
   prior's force at the query clipped into the learned box raising the limit.
 
 Every function here mirrors the Python named beside it operation for operation where it decides

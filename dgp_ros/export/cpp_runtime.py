@@ -15,8 +15,8 @@ __all__ = ['EXP', 'KERNEL', 'KERNEL_SCALAR', 'KERNEL_NONE', 'PSD_FLOOR', 'PROJEC
 #: exp(x) in plain arithmetic, on one number or a vector of them (GCC/clang vector extensions,
 #: so the element loop runs as SIMD where the target has it: SSE2, AVX, AVX-512, NEON):
 #: Cody-Waite reduction by ln 2 and a degree-13 Taylor polynomial in Estrin's form, within a few
-#: ulps of std::exp; exponents below -600 give 0 (online/plan.py's EXP_FLOOR: the kernel there
-#: is < 1e-260, nothing a float64 answer holds, and no subnormal number is ever made)
+#: ulps of std::exp; exponents below -600 give 0 (online/learner/plan.py's EXP_FLOOR: the kernel
+#: there is < 1e-260, nothing a float64 answer holds, and no subnormal number is ever made)
 EXP = Template(r"""
 #if defined(__GNUC__)
 #define DGP_EXPORT_INLINE __attribute__((always_inline)) inline
@@ -301,7 +301,7 @@ inline void project(const double* q, double* tau, double* D, const double* dq) n
 }
 """)
 
-#: the frozen node's output gate (online/answer.py ``_gate``, ``_prior``, ``_bound``):
+#: the frozen node's output gate (online/path/gate.py ``_gate``, ``_prior``, ``_bound``):
 #: non-finite or non-passive answers replaced by the fallback (``gp.blend.prior_answer``: the
 #: prior times its gains), answers beyond the learned force (or the prior's own force inside
 #: the learned box) scaled down. ``$fallback`` sets (tau, D) to the fallback at q (zero where

@@ -6,7 +6,7 @@ the model file read by ``load_model``, its certificate proven as the node proves
 loads a file (:func:`prove_as_node`: never taken from the file), the weights after that proof
 (a repair may change them), the policy's answer (correction weight, eigenvalue floor,
 projection), the earned gains' blend (``gp.blend``) and the node's output gate
-(``online/answer.py``: fallback, bounds). :func:`model_spec` reads all of it into a
+(``online/path/gate.py``: fallback, bounds). :func:`model_spec` reads all of it into a
 :class:`Spec` of numpy arrays and small records, or raises :class:`ExportError` naming why the
 model cannot be carried and what to do.
 
@@ -100,7 +100,7 @@ def prove_as_node(model) -> str:
     """
     Prove a loaded model's certificate as the frozen node does when it loads a file.
 
-    The same steps as ``dgp_ros.online.worker.prove(model, model.passivity)`` (called by
+    The same steps as ``dgp_ros.online.jobs.worker.prove(model, model.passivity)`` (called by
     ``Learner.adopt``): nothing for a mode that does not certify; a stale certificate (a domain
     proof read from a file) re-proven by ``recertify()``, which may repair the weights. Returns
     '' when the certificate holds, else why (the model then answers with every estimate

@@ -1,7 +1,7 @@
 """
 The blend of a damping answer toward its fallback, by earned gains: guarantees kept.
 
-The online learner scores every answer one step ahead (``dgp_ros.online.grounds``) and keeps per
+The online learner scores every answer one step ahead (``online.learner.grounds``) and keeps per
 joint the model's weight ``w`` over the fallback ``a m_d(qd) qd`` (the passive prior times its
 own gain ``a``), both in [0, 1]. A saved model carries them (``grounds_``), so that a model file
 answers, in any process, as the node that learned it answered: where the model had not earned

@@ -192,7 +192,7 @@ class ModelFile:
     policy_arrays: dict
     certificate: dict
     correction: Optional[dict] = None
-    grounds: Optional[dict] = None      # the online learner's gains (``dgp_ros.online.grounds``)
+    grounds: Optional[dict] = None      # the online learner's gains (``online.learner.grounds``)
 
 
 def read_model(path) -> ModelFile:

@@ -22,7 +22,7 @@ from dgp_ros.msgs.cdr import header_bytes, JointStateReader, parse_header
 from dgp_ros.msgs.sample import joint_state_sample
 from dgp_ros.nodes.outputs import (damping_matrix_msg, joint_state, JointOutput, power_messages,
                                    publish_raw, subscribers, Writers)
-from dgp_ros.online.batch import answers_of
+from dgp_ros.online.path.arrays import answers_of
 
 __all__ = ['MessagePath', 'AGE_PLAUSIBLE_S']
 

@@ -9,18 +9,21 @@ No rclpy here (everything a node does can be done offline)::
     e = est.process(stamp_s, names, velocity, effort)          # -> Estimate, or None if rejected
     est.diagnostics()                                          # dict: level, message, counters
 
-Modules: ``config`` (parameters and their specs), ``estimator`` (the message path, with its
-parts ``intake`` and ``clock``), ``learner`` (what is learned, composed of parts that own their
-state: ``front``, ``window``, ``structure``, ``grounds``, ``served``, ``jobs``, ``absorb``,
-``switch``, ``snapshot``, ``files``), ``process``/``child`` (the learner in a child process),
-``health`` and ``report`` (counters and status); docs/ARCHITECTURE.md has the map.
+Rooms, by who runs the code (docs/ARCHITECTURE.md has the map), each importing only those
+before it: ``config`` (the parameter table) and ``memtrace``; ``jobs`` (what replaces the served
+model: ``refits``, ``rebase``, ``switch``, ``worker``); ``learner`` (the learner's state and its
+steps: ``learner``, ``sampling``, ``window``, ``selection``, ``prior``, ``grounds``,
+``skill``, ``served``, ``snapshot``, ``plan``, ``files``, ``health``, ``report``); ``process``
+(the learner in a child process: ``proxy`` in the node, ``child`` in the learner process,
+``ring`` and ``commands`` between them); ``path`` (the node's thread, never waits:
+``estimator``, ``intake``, ``clock``, ``gate``, ``arrays``, ``stream_part``, ``health``).
 """
 from dgp_ros.gp import KINDS as MODELS
 from dgp_ros.gp import PASSIVITY_MODES
 
 from .config import EstimatorConfig, PARAMS, ParamSpec, REFIT_MODES, SELECTION_POLICIES
-from .estimator import Estimate, OnlineEstimator
-from .health import ERROR, OK, REJECT_REASONS, WARN
+from .path.estimator import Estimate, OnlineEstimator
+from .path.health import ERROR, OK, REJECT_REASONS, WARN
 
 __all__ = ['EstimatorConfig', 'OnlineEstimator', 'Estimate', 'PARAMS', 'ParamSpec', 'MODELS',
            'PASSIVITY_MODES', 'SELECTION_POLICIES', 'REFIT_MODES', 'REJECT_REASONS', 'OK',

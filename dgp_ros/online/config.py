@@ -266,7 +266,7 @@ class EstimatorConfig:
         Return the GP's constructor arguments for this configuration.
 
         Passivity, prior, noise floor, no window: the learner appends each new sample to the
-        model and rebases it on the buffer every so often (``absorb``); the buffer holds the
+        model and rebases it on the buffer every so often (``jobs.rebase``); the buffer holds the
         window.
         """
         kw = {'passivity': self.passivity, 'window': None, 'noise_floor': self.noise_floor,

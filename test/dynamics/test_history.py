@@ -10,7 +10,7 @@ from dgp_ros.dynamics.parametric import FAMILIES
 from dgp_ros.gp import FullDGP, load_model
 from dgp_ros.gp.joint_element import JointElementMean
 from dgp_ros.gp.means import BasisFrictionMean
-from dgp_ros.online.selection import Buffer
+from dgp_ros.online.learner.selection import Buffer
 
 PANDA = os.environ.get('DGP_PANDA_REAL', os.path.join(
     os.path.dirname(__file__), '..', '..', '..', 'shared', 'data', 'panda_real'))

@@ -467,7 +467,7 @@ def test_non_revolute_joint_refused():
 
 def test_gate_factor_is_the_nodes():
     from dgp_ros.export.spec import BOUND_FACTOR
-    from dgp_ros.online import answer
+    from dgp_ros.online.path import gate as answer
     assert BOUND_FACTOR == answer.BOUND_FACTOR
 
 

@@ -7,7 +7,7 @@ than the calls in flight.
 """
 import threading
 
-from dgp_ros.online.calls import Calls
+from dgp_ros.online.process.commands import Calls
 
 
 def test_a_late_reply_is_dropped_and_nothing_is_held():

@@ -10,8 +10,8 @@ posterior stays on the window's rows.
 import numpy as np
 
 from dgp_ros.gp import FullDGP
-from dgp_ros.online.selection import Buffer
-from dgp_ros.online.window import Window
+from dgp_ros.online.learner.selection import Buffer
+from dgp_ros.online.learner.window import Window
 
 
 def test_an_even_buffer_spans_the_whole_run_in_bounded_memory():

@@ -11,8 +11,8 @@ import time
 import numpy as np
 
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
-from dgp_ros.online.absorb import Rebases
-from dgp_ros.online.learner import Learner
+from dgp_ros.online.jobs.rebase import Rebases
+from dgp_ros.online.learner.learner import Learner
 
 NAMES = ['a', 'b', 'c']
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
-from dgp_ros.online.batch import answers_of
+from dgp_ros.online.path.arrays import answers_of
 
 NAMES = ('j0', 'j1', 'j2', 'j3')
 

@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
-from dgp_ros.online.child import lower_priority
-from dgp_ros.online.plan import PlanCache
-from dgp_ros.online.ring import SampleRing
-from dgp_ros.online.snapshot import SwapLog
+from dgp_ros.online.learner.plan import PlanCache
+from dgp_ros.online.learner.snapshot import SwapLog
+from dgp_ros.online.process.child import lower_priority
+from dgp_ros.online.process.ring import SampleRing
 
 NAMES = ['a', 'b', 'c']
 
@@ -331,7 +331,7 @@ def test_the_plan_answers_a_model_with_elements_off_as_the_model():
     # computes only those, and answers (and damping matrices) as the model does
     from dgp_ros.gp import FullDGP
     from dgp_ros.gp.select import row_choices
-    from dgp_ros.online.plan import AnswerPlan
+    from dgp_ros.online.learner.plan import AnswerPlan
     rng = np.random.default_rng(4)
     Q = rng.normal(0.0, 0.6, (120, 4))
     T = 0.4 * Q + 0.3 * np.tanh(Q / 0.05) + 0.2 * np.sin(3 * Q) * Q + \

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dgp_ros.online import EstimatorConfig, OK, OnlineEstimator, WARN
-from dgp_ros.online.health import GapCounter
+from dgp_ros.online.path.health import GapCounter
 
 NAMES = ['a', 'b']
 

@@ -12,8 +12,8 @@ import pytest
 from dgp_ros.gp.hyper import _sf2_floor, PERSISTENT_SF2
 from dgp_ros.gp.kernels import Structure
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
-from dgp_ros.online.grounds import blend
-from dgp_ros.online.skill import EVIDENCE_S, Skill
+from dgp_ros.online.learner.grounds import blend
+from dgp_ros.online.learner.skill import EVIDENCE_S, Skill
 
 N = 3
 RNG = np.random.default_rng(36)
@@ -188,7 +188,7 @@ def test_a_changed_law_inside_the_box_is_left_to_the_clock():
 
 def test_a_surprise_counts_only_where_the_error_matters_against_the_force():
     """Far above the model's recent error but small against the force: no new territory."""
-    from dgp_ros.online.skill import SURPRISE_SIGNAL
+    from dgp_ros.online.learner.skill import SURPRISE_SIGNAL
     rng = np.random.default_rng(3)
 
     def skill():
@@ -213,7 +213,7 @@ def test_a_surprise_counts_only_where_the_error_matters_against_the_force():
 def test_a_model_that_goes_wrong_falls_back_within_about_a_second():
     # an arm learning every 10 ms (or a stream at 60 or 30 Hz): right for 10 s, then wrong by
     # three times the force; the model's weight falls below 0.3 within a second
-    from dgp_ros.online.skill import HALF_LIFE_S, HALF_LIFE_SAMPLES
+    from dgp_ros.online.learner.skill import HALF_LIFE_S, HALF_LIFE_SAMPLES
 
     def fall_time(rate):
         s, rng, dt = Skill(N), np.random.default_rng(0), 1.0 / rate

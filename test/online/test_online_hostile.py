@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
-from dgp_ros.online.selection import Selector
+from dgp_ros.online.learner.selection import Selector
 
 NAMES = ['a', 'b', 'c']
 
@@ -153,8 +153,8 @@ def test_answers_outside_the_learned_velocities_stay_within_what_was_learned():
     """
     from types import SimpleNamespace
     from dgp_ros.gp.means import make_mean
-    from dgp_ros.online.answer import answer, BOUND_FACTOR
-    from dgp_ros.online.snapshot import Snapshot
+    from dgp_ros.online.path.gate import answer, BOUND_FACTOR
+    from dgp_ros.online.learner.snapshot import Snapshot
     rng = np.random.default_rng(3)
     Q = rng.uniform(-0.5, 0.5, (40, 2))
     T = np.c_[40.0 * Q[:, 0], 2.0 * Q[:, 1]]
@@ -185,8 +185,8 @@ def test_the_prior_raises_the_bound_no_further_than_the_data_ever_reached():
     """
     from types import SimpleNamespace
     from dgp_ros.gp.means import make_mean
-    from dgp_ros.online.answer import answer, BOUND_FACTOR
-    from dgp_ros.online.snapshot import Snapshot
+    from dgp_ros.online.path.gate import answer, BOUND_FACTOR
+    from dgp_ros.online.learner.snapshot import Snapshot
     rng = np.random.default_rng(4)
     Q = rng.uniform(-0.5, 0.5, (40, 2))
     prior = make_mean('viscous', 'full').fit(Q, np.c_[40.0 * Q[:, 0], 2.0 * Q[:, 1]])
@@ -216,8 +216,8 @@ def test_a_correction_that_would_inflate_a_target_is_not_applied_to_it():
     ``CORRECTION_INFLATION`` x the largest residual is applied.
     """
     from types import SimpleNamespace
-    from dgp_ros.online.health import LearnerHealth
-    from dgp_ros.online.structure import Structure
+    from dgp_ros.online.learner.health import LearnerHealth
+    from dgp_ros.online.learner.prior import Structure
     health = LearnerHealth()
     st = Structure(EstimatorConfig(refit_mode='sync'), None, health)
     for r in ([2.0, -1.0], [-1.5, 0.5]):              # largest |residual|: 2.0 and 1.0
@@ -237,8 +237,8 @@ def test_a_correction_that_would_inflate_a_target_is_not_applied_to_it():
 def test_answers_stay_within_a_factor_of_the_largest_residual_learned():
     """Targets a correction enlarged do not carry the answers beyond RESIDUAL_FACTOR x it."""
     from types import SimpleNamespace
-    from dgp_ros.online.answer import _bound, BOUND_FACTOR, RESIDUAL_FACTOR
-    from dgp_ros.online.snapshot import Snapshot
+    from dgp_ros.online.path.gate import _bound, BOUND_FACTOR, RESIDUAL_FACTOR
+    from dgp_ros.online.learner.snapshot import Snapshot
     at = np.array([[0.5, 0.5], [0.01, 0.01]])
     tau_wild = np.array([[4.0, 0.5], [0.02, 0.01]])       # what a model would answer
     outs = []
@@ -267,8 +267,8 @@ def test_a_bounded_answer_on_the_passivity_boundary_stays_passive(N):
     """
     from types import SimpleNamespace
     from dgp_ros.gp.policy import project_passive
-    from dgp_ros.online.answer import _bound
-    from dgp_ros.online.snapshot import Snapshot
+    from dgp_ros.online.path.gate import _bound
+    from dgp_ros.online.learner.snapshot import Snapshot
 
     def in_order(Q, T):
         p = Q[:, 0] * T[:, 0]

@@ -89,17 +89,20 @@ def test_the_checker_catches_a_mixin_and_a_private_read():
 
 
 def test_no_part_touches_another_parts_private_state():
-    found = []
-    for name in sorted(os.listdir(ONLINE)):
-        if name.endswith('.py'):
-            path = os.path.join(ONLINE, name)
+    found, read = [], 0
+    for where, _, names in sorted(os.walk(ONLINE)):
+        for name in sorted(n for n in names if n.endswith('.py')):
+            path = os.path.join(where, name)
             with open(path) as fh:
                 found += violations(fh.read(), os.path.relpath(path, ROOT))
+            read += 1
+    assert read > 25, f'only {read} modules read under {ONLINE}'
     assert not found, '\n'.join(found)
 
 
 def test_the_learner_and_the_estimator_are_composed_not_mixed():
-    for module, cls in (('learner.py', 'Learner'), ('estimator.py', 'OnlineEstimator')):
+    for module, cls in (('learner/learner.py', 'Learner'),
+                        ('path/estimator.py', 'OnlineEstimator')):
         with open(os.path.join(ONLINE, module)) as fh:
             tree = ast.parse(fh.read())
         node = next(c for c in ast.walk(tree) if isinstance(c, ast.ClassDef) and c.name == cls)
@@ -109,10 +112,12 @@ def test_the_learner_and_the_estimator_are_composed_not_mixed():
 
 def test_each_module_of_the_learner_says_which_part_it_is():
     # a file's first line names what it holds; a part's docstring says whose part it is
-    parts = {'window.py': 'Window', 'structure.py': 'Structure', 'grounds.py': 'Grounds',
-             'served.py': 'Served', 'jobs.py': 'Refits', 'absorb.py': 'Rebases',
-             'switch.py': 'Switch', 'front.py': 'Front', 'files.py': 'ModelFiles',
-             'snapshot.py': 'Snapshots', 'intake.py': 'Intake', 'clock.py': 'LearningClock'}
+    parts = {'learner/window.py': 'Window', 'learner/prior.py': 'Structure',
+             'learner/grounds.py': 'Grounds', 'learner/served.py': 'Served',
+             'jobs/refits.py': 'Refits', 'jobs/rebase.py': 'Rebases', 'jobs/switch.py': 'Switch',
+             'learner/sampling.py': 'Front', 'learner/files.py': 'ModelFiles',
+             'learner/snapshot.py': 'Snapshots', 'path/intake.py': 'Intake',
+             'path/clock.py': 'LearningClock'}
     for module, cls in parts.items():
         with open(os.path.join(ONLINE, module)) as fh:
             tree = ast.parse(fh.read())

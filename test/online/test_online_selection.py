@@ -7,7 +7,7 @@ here to the formula, bit for bit.
 """
 import numpy as np
 
-from dgp_ros.online.selection import Buffer, robust_scale, Selector
+from dgp_ros.online.learner.selection import Buffer, robust_scale, Selector
 
 
 def _formula(A):

@@ -20,9 +20,9 @@ import numpy as np
 from test_online_appends import cfg as _appends_cfg, NAMES, path, true_tau
 
 from dgp_ros.online import OnlineEstimator
-from dgp_ros.online.child import LearnerLoop
-from dgp_ros.online.learner import Learner
-from dgp_ros.online.ring import SampleRing
+from dgp_ros.online.learner.learner import Learner
+from dgp_ros.online.process.child import LearnerLoop
+from dgp_ros.online.process.ring import SampleRing
 
 
 def cfg(**kw):

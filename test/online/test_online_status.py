@@ -10,9 +10,9 @@ import numpy as np
 
 from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf, simulate_arm
 from dgp_ros.online import EstimatorConfig, OK, OnlineEstimator, WARN
-from dgp_ros.online.grounds import Grounds
-from dgp_ros.online.health import Health
-from dgp_ros.online.skill import Skill
+from dgp_ros.online.learner.grounds import Grounds
+from dgp_ros.online.learner.skill import Skill
+from dgp_ros.online.path.health import Health
 
 NAMES = list(ARM_JOINTS['panda'])
 STATE = {'trained': True, 'fill': 100, 'min_samples': 20, 'certifies': True, 'certified': True,
@@ -119,8 +119,8 @@ def test_a_model_worse_than_no_answer_is_named_and_dropped_within_a_second():
 
 def test_a_learner_short_of_cpu_says_so_and_is_ok_again_when_the_load_goes():
     """The last fit's wall time over its computing time: WARN with both, then OK."""
-    from dgp_ros.online.health import LearnerHealth
-    from dgp_ros.online.report import _starved, STARVED_MIN_S, STARVED_RATIO
+    from dgp_ros.online.learner.health import LearnerHealth
+    from dgp_ros.online.learner.report import _starved, STARVED_MIN_S, STARVED_RATIO
     h = LearnerHealth()
     assert _starved(h) == ''                          # nothing measured yet
     h.refit_done(True, 24.5, 10.0, True, '', 0.0, 24.1, 1.2)     # 20x: two busy processes

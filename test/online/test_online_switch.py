@@ -232,7 +232,7 @@ def test_nothing_but_the_freeze_changes_a_model_that_no_longer_learns(tmp_path):
     freeze had saved the model (a learner short of CPU): the node then served a model other
     than the saved one (seen with two suites at once).
     """
-    from dgp_ros.online.learner import Learner
+    from dgp_ros.online.learner.learner import Learner
     path = str(tmp_path / 'm.npz')
     L = Learner(_cfg(model_path=path, refit_mode='async', buffer_size=60))
     t, Q, T = _stream(400, seed=5)

@@ -7,8 +7,8 @@ behind or fail for hours holds at most twice its window in the served model.
 """
 import numpy as np
 
-from dgp_ros.online.health import LearnerHealth
-from dgp_ros.online.served import Served
+from dgp_ros.online.learner.health import LearnerHealth
+from dgp_ros.online.learner.served import Served
 
 
 class _Model:

@@ -1,11 +1,11 @@
-"""The stream part (online/stream_part.py): where it answers, what it answers, and when not."""
+"""The stream part (online/path/stream_part.py): where it answers, what, and when not."""
 import os
 import sys
 
 import numpy as np
 
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
-from dgp_ros.online.stream_part import StreamPart
+from dgp_ros.online.path.stream_part import StreamPart
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'gp'))
 from test_coupled import aircraft  # noqa: E402,I100,I201
@@ -114,7 +114,7 @@ def test_a_reversing_system_silences_the_part_within_its_first_swing():
 def test_the_forgetting_keeps_a_slow_stream_s_samples():
     # a half-life of HALF_LIFE_S at 60 Hz, of HALF_LIFE_SAMPLES messages at 5 Hz: a slow stream
     # keeps enough samples for the features, and still learns the aircraft
-    from dgp_ros.online import stream_part as sp
+    from dgp_ros.online.path import stream_part as sp
     for rate, half_life in ((60.0, sp.HALF_LIFE_S), (5.0, sp.HALF_LIFE_SAMPLES / 5.0)):
         part = StreamPart(3)
         t = np.arange(0.0, 120.0, 1.0 / rate)
@@ -129,7 +129,7 @@ def test_the_forgetting_keeps_a_slow_stream_s_samples():
 def test_a_thinning_learner_still_feeds_every_sample_to_the_long_history():
     # a learner behind its stream learns one sample in k into its window, and every one into
     # the long history whose couplings the saved prior carries (Structure.push_thinned)
-    from dgp_ros.online.learner import Learner
+    from dgp_ros.online.learner.learner import Learner
     t = np.arange(0.0, 20.0, 1.0 / 60.0)
     Q, T = aircraft(t)
     learner = Learner(EstimatorConfig(refit_mode='sync'))

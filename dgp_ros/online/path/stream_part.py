@@ -1,7 +1,7 @@
 """
 The stream part: the couplings of a persistent column, learned on the message path (no rclpy).
 
-A part of :class:`~dgp_ros.online.estimator.OnlineEstimator` on a system that is not an arm (no
+A part of :class:`~.estimator.OnlineEstimator` on a system that is not an arm (no
 rigid-body model: an aircraft, the paper's damping systems). Where a velocity never nears zero
 (``dynamics.coupling_track``), the forces ride on its column of ``D`` (``gp.coupled``: dynamic
 pressure times a coefficient polynomial in alpha and beta, for an aircraft). The learner learns

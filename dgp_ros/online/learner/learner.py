@@ -3,13 +3,14 @@ The learner: everything the online estimator learns, and nothing it answers (no 
 
 A :class:`Learner` takes validated measurements in learning time (``learn``), turns them into
 learning samples, decides which to keep, updates the model, runs refit and re-proof jobs and
-publishes what a prediction needs as an immutable :class:`~dgp_ros.online.snapshot.Snapshot`.
-The message path (:class:`~dgp_ros.online.estimator.OnlineEstimator`) answers from the newest
-snapshot and never waits for the learner; in the node the learner lives in a child process
-(:mod:`dgp_ros.online.process`), in replay and tests in line (``refit_mode='sync'``).
+publishes what a prediction needs as an immutable
+:class:`~dgp_ros.online.learner.snapshot.Snapshot`. The message path
+(:class:`~dgp_ros.online.path.estimator.OnlineEstimator`) answers from the newest snapshot and
+never waits for the learner; in the node the learner lives in a child process
+(:mod:`dgp_ros.online.process.proxy`), in replay and tests in line (``refit_mode='sync'``).
 
-It is composed of parts, each a class that owns its state: ``front``, ``window``,
-``structure``, ``grounds``, ``served``, ``refits``, ``rebases``, ``switch``, ``snapshots``,
+It is composed of parts, each a class that owns its state: ``sampling``, ``window``,
+``prior``, ``grounds``, ``served``, ``refits``, ``rebases``, ``switch``, ``snapshots``,
 ``files`` (docs/ARCHITECTURE.md, "The learner's parts": what each owns, the path of a message
 and of a refit through them). A part calls another only through its public methods; the learner
 makes them, passes each what it needs, and makes them anew on a reset. It owns the one lock that
@@ -27,19 +28,19 @@ import numpy as np
 
 from dgp_ros.gp import load_model, make_model
 
-from .absorb import Rebases
-from .config import EstimatorConfig
 from .files import ModelFiles
-from .front import Front
 from .grounds import Grounds
 from .health import LearnerHealth
-from .jobs import Refits
+from .prior import Structure
 from .report import learner_status
+from .sampling import Front
 from .served import Served
 from .snapshot import Snapshot, Snapshots
-from .structure import Structure
-from .switch import Switch
 from .window import Window
+from ..config import EstimatorConfig
+from ..jobs.rebase import Rebases
+from ..jobs.refits import Refits
+from ..jobs.switch import Switch
 
 __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
 
@@ -274,7 +275,7 @@ class Learner:
 
     def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q,
                thin: int = 1) -> Tuple[bool, list]:
-        """Offer the sample for learning (``front``); learn what it gives; (taken, residuals)."""
+        """Offer the sample to learn (``sampling``); learn what it gives; (taken, residuals)."""
         want, done, take = self.front.offer(self.config, self.health, stamp, qd, tau, q)
         if thin > 1 and take:
             take, thinned = self.front.thin(take, thin, self.health)
@@ -295,7 +296,7 @@ class Learner:
         Learn one sample: the long history always, the window unless it is a near-duplicate.
 
         residual (N,): what the damping and (``prior='auto'``) the correction explain; the
-        window keeps it minus the current correction (``structure``). Before it is learned the
+        window keeps it minus the current correction (``prior``). Before it is learned the
         sample scores the served model and its parametric part (``grounds``): one step ahead.
         """
         h, win, st = self.health, self.window, self.structure

@@ -11,7 +11,7 @@ than a long block of appends.
 
 A rebase does not wait for a proof: a certifying mode's model serves with what its cheap
 certificates give (the global bound, the eigenvalue floor) or, while a domain proof is pending,
-with every answer projected; the proof runs in a re-proof job (``jobs``). Only a non-finite
+with every answer projected; the proof runs in a re-proof job (``refits``). Only a non-finite
 model is refused (the samples then wait for the next refit, and the learner's health says why).
 
 In line (``refit_mode='sync'``) a rebase runs at once, in learning order; otherwise in a thread
@@ -123,7 +123,7 @@ class Rebases:
         serves until learning is switched on again.
 
         The scales stay those of the last hyper-parameter fit; with ``prior='auto'`` the frozen
-        prior is the newest fit of the long history (``structure``). A certifying mode's proof
+        prior is the newest fit of the long history (``prior``). A certifying mode's proof
         is left to the re-proof job (``fit(prove=False)``). The samples learned while it ran are
         appended to it after it is swapped in, by the thread that learns them.
         """

@@ -16,8 +16,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .config import check_model_path
-from .worker import prove
+from ..config import check_model_path
+from ..jobs.worker import prove
 
 __all__ = ['ModelFiles', 'forward_weights', 'FORWARD_FRACTION']
 

@@ -21,9 +21,9 @@ from dgp_ros.gp import passive_tolerance
 
 from dgp_ros.gp.blend import prior_answer
 
-from .grounds import blend
-from .plan import PlanCache
-from .snapshot import Snapshot
+from ..learner.grounds import blend
+from ..learner.plan import PlanCache
+from ..learner.snapshot import Snapshot
 
 __all__ = ['answer', 'Estimate', 'BOUND_FACTOR', 'RESIDUAL_FACTOR']
 

@@ -19,12 +19,12 @@ import traceback
 
 import numpy as np
 
-from .config import EstimatorConfig
-from .grounds import GAINS
-from .learner import Learner
-from .memtrace import start_from_env as trace_memory, trim, TRIM_PERIOD_S
-from .plan import PlanCache
 from .ring import SampleRing
+from ..config import EstimatorConfig
+from ..learner.grounds import GAINS
+from ..learner.learner import Learner
+from ..learner.plan import PlanCache
+from ..memtrace import start_from_env as trace_memory, trim, TRIM_PERIOD_S
 
 __all__ = ['LearnerLoop', 'child_main']
 

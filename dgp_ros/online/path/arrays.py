@@ -20,7 +20,7 @@ from typing import Optional
 
 import numpy as np
 
-from .answer import Estimate
+from .gate import Estimate
 
 __all__ = ['Answers', 'answers_of', 'last_estimate']
 

@@ -3,13 +3,13 @@ The online estimator's message path: validate, answer, hand over to the learner 
 
 ``process`` validates one measurement, hands it to the learner and answers with the estimate at
 the measured velocity from the newest learner snapshot; ``process_batch`` does the same for every
-message waiting at once, with one vectorized prediction, and ``process_arrays`` (``batch``) for a
+message waiting at once, with one vectorized prediction, and ``process_arrays`` (``arrays``) for a
 batch of like messages given as arrays (the node's raw path), without an object per message.
 The learner (``learner.Learner``) is where everything is learned; where it runs is
 ``refit_mode``:
 
-* ``'process'`` (the node's default): a child process (``process.LearnerProcess``) fed through a
-  bounded shared-memory channel; snapshots come back and are swapped in by one reference
+* ``'process'`` (the node's default): a child process (``process.proxy.LearnerProcess``) fed
+  through a bounded shared-memory channel; snapshots come back and are swapped in by one reference
   assignment. The message path never waits for a fit, a proof or a rebuild; if the learner
   dies, the last snapshot keeps answering while a new learner starts from it.
 * ``'async'``: the learner in this process, its refits in a background thread.
@@ -31,16 +31,16 @@ import numpy as np
 
 from dgp_ros.gp.passivity import policy_class
 
-from .answer import answer, Estimate, guarantee
-from .batch import Answers, last_estimate
+from .arrays import Answers, last_estimate
 from .clock import LearningClock
-from .config import EstimatorConfig
+from .gate import answer, Estimate, guarantee
 from .health import Health
 from .intake import Intake
-from .learner import FRONT_END, Learner
-from .plan import PlanCache
-from .snapshot import Snapshot
 from .stream_part import StreamPart
+from ..config import EstimatorConfig
+from ..learner.learner import FRONT_END, Learner
+from ..learner.plan import PlanCache
+from ..learner.snapshot import Snapshot
 
 __all__ = ['OnlineEstimator', 'Estimate']
 
@@ -51,8 +51,9 @@ class OnlineEstimator:
 
     Its parts: ``intake`` (the joints and the checks of every message: ``intake.Intake``),
     ``clock`` (the learning time: ``clock.LearningClock``), the learner (``learner.Learner`` or
-    ``process.LearnerProcess``), ``health`` (the message path's counters) and the answer plans
-    (``plan.PlanCache``); one lock serializes the message path, diagnostics and control.
+    ``process.proxy.LearnerProcess``), ``health`` (the message path's counters) and the answer
+    plans (``learner.plan.PlanCache``); one lock serializes the message path, diagnostics and
+    control.
 
     Parameters
     ----------
@@ -74,7 +75,7 @@ class OnlineEstimator:
         self._want_residuals = True
         self._plans = PlanCache()             # the lean pass of the snapshot answered from
         if self.config.refit_mode == 'process':
-            from .process import LearnerProcess
+            from ..process.proxy import LearnerProcess
             # a new snapshot's answer plan is built in the receiver thread, before the swap
             self._learner = LearnerProcess(
                 self.config, prepare=lambda snap: self._plans.prepare(snap.model, snap.plan))

@@ -33,7 +33,7 @@ class Snapshot:
     prior_std : (N,) RMS of the buffer's residual after the prior (the fallback's stddev).
     force_bound : (N,) largest |force| learned per joint (bounds the answers, see the estimator).
     velocity_box : ((N,), (N,)) the smallest and largest velocity learned per joint, None before
-        any sample: where the prior's own force may raise the answers' bound (``answer``).
+        any sample: where the prior's own force may raise the answers' bound (``path.gate``).
     residual_bound : (N,) largest |residual| learned per joint, before any correction (None
         after a reload): how far the prior may raise that bound at most.
     learned_through : learning time of the newest sample the learner had seen (s), or None.
@@ -93,7 +93,7 @@ class Snapshots:
 
         N : the number of joints (None: not known yet); learned_through : the newest sample's
         learning time (s). variance : include what the posterior variance needs (the Cholesky
-        factors). frozen : a self-contained copy for another process (``process``); else the
+        factors). frozen : a self-contained copy for another process (``process.proxy``); else the
         snapshot refers to the live model (in-line use: the caller learns and answers in turn).
         """
         win, served = self._window, self._served

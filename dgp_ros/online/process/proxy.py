@@ -33,11 +33,11 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .calls import Calls
 from .child import child_main, describe_exit, raise_reply, SCHED_CHOICES
-from .config import EstimatorConfig
+from .commands import Calls
 from .ring import SampleRing
-from .snapshot import SwapLog
+from ..config import EstimatorConfig
+from ..learner.snapshot import SwapLog
 
 __all__ = ['LearnerProcess']
 
@@ -49,7 +49,7 @@ def _context():
     global _CTX
     if _CTX is None:
         ctx = multiprocessing.get_context('forkserver')
-        ctx.set_forkserver_preload(['dgp_ros.online.learner'])
+        ctx.set_forkserver_preload(['dgp_ros.online.learner.learner'])
         _CTX = ctx
     return _CTX
 
@@ -369,7 +369,7 @@ class LearnerProcess:
             return what
         if what.startswith(('ValueError: ', 'RuntimeError: ')):
             raise_reply(what)
-        from .config import check_model_path
+        from ..config import check_model_path
         if not path:
             raise ValueError('no path given and model_path is not set')
         check_model_path(path)

@@ -1,7 +1,7 @@
 """
 The learning clock: the time learning decisions use, from the message stamps (no rclpy).
 
-A part of :class:`~dgp_ros.online.estimator.OnlineEstimator`, called under its lock. Learning
+A part of :class:`~dgp_ros.online.path.estimator.OnlineEstimator`, called under its lock. Learning
 goes by the message stamps (a replay decides exactly as the live run did), unless stamps stop
 advancing (``STALLED_STAMPS`` equal stamps in a row: a driver that leaves header.stamp at 0 or
 constant); then by the arrival time, with a WARN, until they advance again for as many

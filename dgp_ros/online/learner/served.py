@@ -15,7 +15,7 @@ A part of :class:`~dgp_ros.online.learner.Learner`, called under the learner's l
   reaching new velocities (the A320 entering angles of attack it has not flown yet) the answer
   one step ahead comes from its neighbour of 1/60 s ago, not from ten samples ago. Samples that
   are not all at hand in learning order with the model's targets (evicted, or retargeted) are
-  left to the next rebase (``absorb``), which ``blocked`` asks for.
+  left to the next rebase (``jobs.rebase``), which ``blocked`` asks for.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """
 What the estimator accepts: the joints, their order, and the checks of every message (no rclpy).
 
-A part of :class:`~dgp_ros.online.estimator.OnlineEstimator`, called under its lock. It owns the
+A part of :class:`~.estimator.OnlineEstimator`, called under its lock. It owns the
 joint names the estimator answers in (``joints``, else the first named message's), their number
 and the order of the last names seen, and checks one message (``check``) or a batch of like
 messages given as arrays (``check_batch``: a driver sends the same names and lengths in every

@@ -4,7 +4,7 @@ The one-step skill of the model and of its parametric part, and the gains it giv
 :class:`Skill` keeps exponentially weighted sums of the one-step answers of the model and of the
 parametric part against the learned target, per joint, and gives the model's weight, the prior's
 gain and the confidence of the blended answer (``grounds`` says what they are for and how they
-are used; :class:`~dgp_ros.online.grounds.Grounds` is the learner's part that feeds it).
+are used; :class:`~dgp_ros.online.learner.grounds.Grounds` is the learner's part that feeds it).
 """
 from __future__ import annotations
 
@@ -39,8 +39,8 @@ EVIDENCE_S = 5.0
 #: a gain at least this large counts in full (a gain of 0.8 is an answer that is right up to a
 #: 20 % overestimate on the recent samples)
 FULL_GAIN = 0.8
-#: a sample's error counts toward ``Skill.surprise`` (new territory: ``jobs``) only where it is
-#: more than this fraction of the force's recent RMS (the zero answer's error): far above the
+#: a sample's error counts toward ``Skill.surprise`` (new territory: ``jobs.refits``) only where
+#: it is more than this fraction of the force's recent RMS (the zero answer's error): far above the
 #: model's own recent error but small against the force, as on a real arm's well-learned joint,
 #: it is no reason to re-learn the hyper-parameters (docs/BENCHMARKS.md, "Issue 36, measured
 #: by hand": the real Panda's split 0.545 with it, 0.567 without; on 22 A320 flights 0.05-0.7

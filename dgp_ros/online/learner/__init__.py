@@ -1,0 +1,1 @@
+"""The learner's state and its steps: what is learned, and the served model (no rclpy)."""

@@ -1,0 +1,1 @@
+"""The learner in a child process: the node's proxy, the child's loop, the ring (no rclpy)."""
