@@ -186,23 +186,17 @@ def listener(a) -> None:
 
 
 # ----------------------------------------------------------------------------- the run
-def _rss_mib(pid: int) -> float:
-    try:
-        with open(f'/proc/{pid}/status') as f:
-            for line in f:
-                if line.startswith('VmRSS:'):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float('nan')
+def _proc_mib(pid: int, field: str = 'VmRSS:', where: str = 'status') -> float:
+    """
+    Return a memory figure of process ``pid`` from ``/proc/PID/<where>`` (MiB; NaN: gone).
 
-
-def _anon_mib(pid: int) -> float:
-    """Anonymous memory of process ``pid`` (MiB; the heap and arenas, not mapped files)."""
+    ``VmRSS:`` of ``status``: the resident memory; ``Anonymous:`` of ``smaps_rollup``: its
+    heap and arenas, not mapped files.
+    """
     try:
-        with open(f'/proc/{pid}/smaps_rollup') as f:
+        with open(f'/proc/{pid}/{where}') as f:
             for line in f:
-                if line.startswith('Anonymous:'):
+                if line.startswith(field):
                     return int(line.split()[1]) / 1024.0
     except OSError:
         pass
@@ -247,11 +241,12 @@ def run(a, work: str) -> dict:
             if procs['node'].poll() is not None:
                 raise RuntimeError(f'the node ended (see {f("estimator.log")})')
             learners = learner_pids(procs['node'].pid)
-            row = {'t': time.monotonic() - t0,
-                   'learner': sum(_rss_mib(p) for p in learners) if learners else float('nan'),
-                   'learner_anon': sum(_anon_mib(p) for p in learners) if learners
-                   else float('nan')}
-            row.update({k: _rss_mib(p.pid) for k, p in procs.items()})
+            row = {'t': time.monotonic() - t0}
+            for key, fig in (('learner', ('VmRSS:', 'status')),
+                             ('learner_anon', ('Anonymous:', 'smaps_rollup'))):
+                row[key] = sum(_proc_mib(p, *fig) for p in learners) if learners \
+                    else float('nan')
+            row.update({k: _proc_mib(p.pid) for k, p in procs.items()})
             samples.append(row)
             C.log(f'{SECTION}: {row["t"]:.0f} s ' + ' '.join(
                 f'{k} {v:.1f}' for k, v in row.items() if k != 't') + ' MiB')

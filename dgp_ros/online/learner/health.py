@@ -41,7 +41,7 @@ class LearnerHealth:
     absorbs_rejected: int = 0         # rebases that failed (non-finite): the samples wait
     last_absorb_error: str = ''
     proofs_failed: int = 0            # models served unproven (every answer projected)
-    proofs_failed_in_a_row: int = 0   # re-proofs wait longer after each (Absorber._proof_gap)
+    proofs_failed_in_a_row: int = 0   # re-proofs wait longer after each (Refits.proof_gap)
     last_proof_error: str = ''
     proven_at: Optional[float] = None     # learning time of the last model proven (s)
     consecutive_refit_failures: int = 0
