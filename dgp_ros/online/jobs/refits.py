@@ -416,11 +416,11 @@ class Refits:
         if served.model is not job.source:
             return False, 'recertified, but a newer model serves'
         if served.held != job.seq:
-            rows = self._window.rows_between(job.seq, served.held)
-            if len(rows) != served.held - job.seq or any(r[1] != job.target_gen for r in rows):
+            run = self._window.run_of(job.seq, served.held, job.target_gen)
+            if run is None:
                 return False, 'recertified, but the model moved on'
             try:
-                model.update(np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
+                model.update(*run)
             except Exception as exc:    # noqa: BLE001 - the served model stays
                 return False, f'recertified, but catching up failed: {exc}'
         served.replace(model)

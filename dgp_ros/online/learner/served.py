@@ -19,7 +19,6 @@ A part of :class:`~dgp_ros.online.learner.Learner`, called under the learner's l
 """
 from __future__ import annotations
 
-import numpy as np
 
 __all__ = ['Served']
 
@@ -103,19 +102,20 @@ class Served:
         """
         if self._model is None or window.seq <= self._held:
             return 0
-        rows = window.rows_after(self._held)
-        if not rows or rows[0][0] != self._held + 1 or any(r[1] != self._gen for r in rows) \
-                or self._appended + len(rows) > rebase_after:
+        k = window.seq - self._held
+        run = window.run_of(self._held, window.seq, self._gen) \
+            if self._appended + k <= rebase_after else None
+        if run is None:
             self._blocked = True
             return 0
         try:
-            self._model.update(np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
+            self._model.update(*run)
         except Exception as exc:    # noqa: BLE001 - the rebase takes them
             health.last_absorb_error = f'append failed: {type(exc).__name__}: {exc}'
             self._appended = rebase_after      # rebase at once
             return 0
-        self._held = rows[-1][0]
-        self._appended += len(rows)
+        self._held = window.seq
+        self._appended += k
         self._version += 1
-        health.appends += len(rows)
-        return len(rows)
+        health.appends += k
+        return k

@@ -18,7 +18,7 @@ learner's lock. It holds
 from __future__ import annotations
 
 from collections import deque
-from typing import List, Optional, Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -87,13 +87,18 @@ class Window:
         """Return the buffered raw residuals (size, N) and correction columns (or None)."""
         return self.buffer.residuals_unordered()
 
-    def rows_after(self, seq: int) -> List[tuple]:
-        """Return the kept rows (seq, target generation, qd, target) newer than ``seq``."""
-        return [r for r in self.rows if r[0] > seq]
+    def run_of(self, lo: int, hi: int, gen: int) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """
+        Return (Qd (k, n), targets (k, m)) of the samples ``lo < seq <= hi``, k = hi - lo.
 
-    def rows_between(self, lo: int, hi: int) -> List[tuple]:
-        """Return the kept rows with ``lo < seq <= hi``."""
-        return [r for r in self.rows if lo < r[0] <= hi]
+        None unless every one of them is still kept with targets of generation ``gen``: what
+        a model that holds the samples up to ``lo`` can append to hold them up to ``hi``
+        (otherwise a rebase must take them).
+        """
+        rows = [r for r in self.rows if lo < r[0] <= hi]
+        if len(rows) != hi - lo or any(r[1] != gen for r in rows):
+            return None
+        return np.array([r[2] for r in rows]), np.array([r[3] for r in rows])
 
     # ------------------------------------------------------------------ learning
     def offered(self, qd: np.ndarray, residual: np.ndarray) -> None:

@@ -105,17 +105,9 @@ class Intake:
                 (p is not None and p.size != v.size):
             return 'length_mismatch'
         if self._names is not None and names:
-            key = tuple(names)
-            cached = self._order
-            if cached is not None and cached[0] == key:     # a driver sends the same names
-                idx = cached[1]
-            else:
-                pos = {n: i for i, n in enumerate(names)}
-                try:
-                    idx = np.array([pos[n] for n in self._names], dtype=np.intp)
-                except KeyError:
-                    return 'missing_joint'
-                self._order = (key, idx)
+            idx = self._joint_order(tuple(names))
+            if idx is None:
+                return 'missing_joint'
             v, e, names = v[idx], e[idx], list(self._names)
             p = None if p is None else p[idx]
         elif self._names is not None and not names and cfg.joints:
@@ -188,6 +180,24 @@ class Intake:
         return reasons, stamps, (velocity[ok], _torque(effort[ok], cfg),
                                  None if p is None else p[ok])
 
+    def _joint_order(self, names: tuple):
+        """
+        Return where the estimator's joints are in ``names`` (int array, shape (N,)), or None.
+
+        None: one of them is missing. The last name list's answer is kept (``_order``): a
+        driver sends the same names in every message.
+        """
+        cached = self._order
+        if cached is not None and cached[0] == names:
+            return cached[1]
+        pos = {n: i for i, n in enumerate(names)}
+        try:
+            idx = np.array([pos[n] for n in self._names], dtype=np.intp)
+        except KeyError:
+            return None
+        self._order = (names, idx)
+        return idx
+
     def _content(self, names: tuple, position):
         """Return the reason every message is rejected for, or the joint order (None: as is)."""
         cached = self._order
@@ -196,15 +206,9 @@ class Intake:
             return 'duplicate_name'
         if self._positions and position is None:
             return 'missing_position'
-        if known:
-            idx = cached[1]
-        else:
-            pos = {n: i for i, n in enumerate(names)}
-            try:
-                idx = np.array([pos[n] for n in self._names], dtype=np.intp)
-            except KeyError:
-                return 'missing_joint'
-            self._order = (names, idx)
+        idx = self._joint_order(names)
+        if idx is None:
+            return 'missing_joint'
         if idx.size != self._N:
             return 'dimension_mismatch'
         cached = self._order
