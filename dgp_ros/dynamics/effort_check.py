@@ -14,7 +14,8 @@ over :data:`MIN_SPAN_S` s): on a joint whose friction dominates the model explai
 says nothing of the unit, and the first second of a motion that starts from rest can show a
 torque's gain near 3 (a simulated Panda's shoulder, 1.75 s in).
 
-Pure numpy; O(N) memory and per sample. A part of the learner's front end (``online.front``).
+Pure numpy; O(N) memory and per sample. A part of the learner's front end
+(``online.learner.sampling``).
 """
 from __future__ import annotations
 

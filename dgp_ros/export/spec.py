@@ -34,7 +34,7 @@ from .errors import ExportError
 __all__ = ['ExportError', 'Spec', 'Element', 'model_spec', 'prove_as_node', 'BOUND_FACTOR',
            'psi_terms', 'psi_values']
 
-#: the output gate's factor on the largest learned force (``online.answer.BOUND_FACTOR``; the
+#: the output gate's factor on the largest learned force (``online.path.gate.BOUND_FACTOR``; the
 #: export does not import the online layer: test/export checks that the two agree)
 BOUND_FACTOR = 1.5
 

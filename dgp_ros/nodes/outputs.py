@@ -1,11 +1,11 @@
 """
 The estimator node's outputs: answers published as serialized bytes, the rare ones as messages.
 
-Every per-answer JointState output is a :class:`JointOutput`: a publisher and which arrays of
-the answers (``online.batch.Answers``) go into position, velocity and effort. The answers of a
+Every per-answer JointState output is a :class:`JointOutput`: a publisher and which arrays of the
+answers (``online.path.arrays.Answers``) go into position, velocity and effort. The answers of a
 batch are encoded at once (``cdr.JointStateWriter``: the measurement's header bytes echoed, the
-names encoded once) and published as serialized messages; an output is encoded only while
-someone subscribes (the force always). An output of this shape is one line of
+names encoded once) and published as serialized messages; an output is encoded only while someone
+subscribes (the force always). An output of this shape is one line of
 ``EstimatorNode._joint_outputs``.
 """
 from __future__ import annotations

@@ -213,7 +213,7 @@ def test_a_surprise_counts_only_where_the_error_matters_against_the_force():
 def test_a_model_that_goes_wrong_falls_back_within_about_a_second():
     # an arm learning every 10 ms (or a stream at 60 or 30 Hz): right for 10 s, then wrong by
     # three times the force; the model's weight falls below 0.3 within a second
-    from dgp_ros.online.learner.skill import HALF_LIFE_S, HALF_LIFE_SAMPLES
+    from dgp_ros.online.learner.skill import GAIN_HALF_LIFE_S, GAIN_HALF_LIFE_SAMPLES
 
     def fall_time(rate):
         s, rng, dt = Skill(N), np.random.default_rng(0), 1.0 / rate
@@ -226,7 +226,7 @@ def test_a_model_that_goes_wrong_falls_back_within_about_a_second():
             if s.gains()[0].max() < 0.3:
                 return (k + 1) * dt
         return np.inf
-    assert HALF_LIFE_S == 1.0 and HALF_LIFE_SAMPLES == 100
+    assert GAIN_HALF_LIFE_S == 1.0 and GAIN_HALF_LIFE_SAMPLES == 100
     # within a second at every rate: the floor drops a model that does worse than no answer
     # (the short memory alone took 1.5 to 3 s at 30 Hz)
     assert max(fall_time(100), fall_time(60), fall_time(30)) <= 1.0

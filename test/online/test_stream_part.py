@@ -112,10 +112,11 @@ def test_a_reversing_system_silences_the_part_within_its_first_swing():
 
 
 def test_the_forgetting_keeps_a_slow_stream_s_samples():
-    # a half-life of HALF_LIFE_S at 60 Hz, of HALF_LIFE_SAMPLES messages at 5 Hz: a slow stream
-    # keeps enough samples for the features, and still learns the aircraft
+    # a half-life of FORGET_HALF_LIFE_S at 60 Hz, of FORGET_HALF_LIFE_SAMPLES messages at 5 Hz:
+    # a slow stream keeps enough samples for the features, and still learns the aircraft
     from dgp_ros.online.path import stream_part as sp
-    for rate, half_life in ((60.0, sp.HALF_LIFE_S), (5.0, sp.HALF_LIFE_SAMPLES / 5.0)):
+    for rate, half_life in ((60.0, sp.FORGET_HALF_LIFE_S),
+                            (5.0, sp.FORGET_HALF_LIFE_SAMPLES / 5.0)):
         part = StreamPart(3)
         t = np.arange(0.0, 120.0, 1.0 / rate)
         Q, T = aircraft(t)

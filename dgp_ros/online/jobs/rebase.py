@@ -15,7 +15,7 @@ with every answer projected; the proof runs in a re-proof job (``refits``). Only
 model is refused (the samples then wait for the next refit, and the learner's health says why).
 
 In line (``refit_mode='sync'``) a rebase runs at once, in learning order; otherwise in a thread
-of its own (``dgp_absorb``), as soon as the last rebase's cost allows it.
+of its own (``dgp_rebase``), as soon as the last rebase's cost allows it.
 """
 from __future__ import annotations
 
@@ -104,7 +104,7 @@ class Rebases:
             self.run()
             return
         if self._thread is None or not self._thread.is_alive():
-            self._thread = threading.Thread(target=self._loop, name='dgp_absorb', daemon=True)
+            self._thread = threading.Thread(target=self._loop, name='dgp_rebase', daemon=True)
             self._thread.start()
         self._wanted.set()
 

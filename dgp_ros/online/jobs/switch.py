@@ -12,7 +12,7 @@ friction residual front end still runs, so ``~/friction_residual`` goes on for m
 
 Switching it off (``Learner.reconfigure``) freezes the model in a job of its own (``freeze``: in
 line with ``refit_mode='sync'``, else in the refit thread, so neither the message path nor the
-parameter call waits for it; ``jobs.Refits`` runs it):
+parameter call waits for it; ``refits.Refits`` runs it):
 
 1. a refit or rebase still running is discarded (its candidate would change the model after the
    switch);

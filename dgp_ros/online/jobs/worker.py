@@ -104,14 +104,14 @@ def prove(model, passivity: str, full: bool = False) -> str:
 
 
 #: a candidate's estimates may exceed the largest force of its data by at most this factor
-BOUND_FACTOR = 10.0
+SANE_FACTOR = 10.0
 
 
 def sane(model, Q: np.ndarray, T: np.ndarray, rng=None, probes: int = 2000) -> Tuple[bool, str]:
     """
     Check that a candidate's estimates are finite and bounded.
 
-    (ok, reason): are a candidate's estimates finite and bounded by ``BOUND_FACTOR`` x the
+    (ok, reason): are a candidate's estimates finite and bounded by ``SANE_FACTOR`` x the
     largest force of its data, on its data and on velocities up to 1.5 x beyond its data box?
     A fit on a short, poorly excited stretch can extrapolate wildly; such a model must not
     replace one that works.
@@ -121,13 +121,13 @@ def sane(model, Q: np.ndarray, T: np.ndarray, rng=None, probes: int = 2000) -> T
     c, w = 0.5 * (lo + hi), 0.75 * (hi - lo)
     probe = np.vstack([Q, rng.uniform(c - w, c + w, (probes, Q.shape[1]))])
     P = model.predict(probe)
-    limit = BOUND_FACTOR * np.maximum(np.abs(T).max(axis=0), 1e-12)
+    limit = SANE_FACTOR * np.maximum(np.abs(T).max(axis=0), 1e-12)
     if not np.all(np.isfinite(P)):
         return False, 'sanity check: non-finite estimates'
     worst = np.abs(P).max(axis=0) / limit
     if np.any(worst > 1.0):
         j = int(np.argmax(worst))
-        return False, (f'sanity check: estimates up to {worst[j] * BOUND_FACTOR:.0f} x the '
+        return False, (f'sanity check: estimates up to {worst[j] * SANE_FACTOR:.0f} x the '
                        f'largest force of the data on output {j}')
     return True, ''
 

@@ -11,7 +11,7 @@ is blended toward what has proven itself.
 answered by the served model *before* the sample is learned (one step ahead, as the message path
 answered it), and by the parametric part alone (the passive prior ``diag(m_d(qd)) qd``).
 :class:`Skill` keeps exponentially weighted sums of these answers against the learned target,
-per joint, over the last ``HALF_LIFE_S`` of learning time (at least ``HALF_LIFE_SAMPLES``
+per joint, over the last ``GAIN_HALF_LIFE_S`` of learning time (at least ``GAIN_HALF_LIFE_SAMPLES``
 samples), and gives two gains by shrunken least squares:
 
 * ``a`` (N,): the prior's gain, ``argmin_a E[(t - a p)^2]`` clipped to [0, 1]: the fallback is

@@ -172,7 +172,7 @@ class Learner:
     def refit_running(self) -> bool:
         return self.refits.running()
 
-    # the rest of the interface the message path uses (``process.LearnerProcess`` has it too)
+    # the rest of the interface the message path uses (``process.proxy.LearnerProcess`` has it too)
     def joint_names(self) -> List[str]:
         """Joint names the learner selects (``joints``, else the URDF's; [] = message order)."""
         return list(self.config.joints) or list(getattr(self._inverse, 'joint_names', []))
@@ -237,10 +237,10 @@ class Learner:
             if self.append_each:
                 self.catch_up()
             job = self._next_job(t)
-            absorb = job is None and self.rebases.due()
+            rebase = job is None and self.rebases.due()
         if job is not None:
             self.refits.start(job)
-        elif absorb:
+        elif rebase:
             self.rebases.soon()
         return added, residuals
 
@@ -251,7 +251,7 @@ class Learner:
 
     def poll(self, idle: bool = False) -> None:
         """
-        Do what became due without a new sample: a job, or absorbing the last samples.
+        Do what became due without a new sample: a job, or a rebase on the last samples.
 
         ``idle``: the stream has paused (a learner process says so after ``PAUSE_S`` without a
         sample); a stale certificate is then re-proven at once: the proof holds until the stream
@@ -261,10 +261,10 @@ class Learner:
             if self._last_t is None and not self.switch.wanted:
                 return
             job = self._next_job(self._last_t, idle)
-            absorb = job is None and self.rebases.due()
+            rebase = job is None and self.rebases.due()
         if job is not None:
             self.refits.start(job)
-        elif absorb:
+        elif rebase:
             self.rebases.soon()
 
     def _next_job(self, stamp, idle: bool = False):

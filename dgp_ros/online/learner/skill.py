@@ -13,19 +13,19 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ['Skill', 'HALF_LIFE_S', 'HALF_LIFE_SAMPLES', 'LONG_HALF_LIFE_S', 'MAX_STEP_S',
+__all__ = ['Skill', 'GAIN_HALF_LIFE_S', 'GAIN_HALF_LIFE_SAMPLES', 'LONG_HALF_LIFE_S', 'MAX_STEP_S',
            'PSEUDO_SAMPLES', 'FULL_GAIN', 'EVIDENCE_S', 'SURPRISE_SIGNAL', 'SKILL_WARN_MARGIN',
            'FLOOR_S', 'FLOOR_SAMPLES', 'FLOOR_MIN', 'FLOOR_STEP']
 
 
 #: learning time (s) over which the skill is measured: a sample's weight halves after it ...
-HALF_LIFE_S = 1.0
+GAIN_HALF_LIFE_S = 1.0
 #: ... or after this many samples, if that is longer: a gain needs samples as well as seconds
 #: (an A320 at 60 Hz with 60 samples: its one-step NMSE 1.2-1.4x worse on a flight of the
 #: family; 100 samples are 1 s of an arm learning every 10 ms, 1.7 s at 60 Hz, 3.3 s at 30 Hz;
 #: a model that goes wrong by three times the force falls back below a weight of 0.3 in 0.8 s
 #: at 100 Hz, 1.2 s at 60 Hz, 2.7 s at 30 Hz: test_online_grounds)
-HALF_LIFE_SAMPLES = 100
+GAIN_HALF_LIFE_SAMPLES = 100
 #: the memory of the gains a saved model carries (a frozen model answers with them for good:
 #: the last second's gains of a noisy joint scaled a real Panda joint's friction by 0.54)
 LONG_HALF_LIFE_S = 30.0
@@ -82,8 +82,8 @@ class _Memory:
 
     def decay(self, dt: float) -> float:
         """Return the weight left to the past after one sample ``dt`` s after the last one."""
-        return 0.5 ** min(dt / self.half_life_s, self.half_life_s / HALF_LIFE_S /
-                          HALF_LIFE_SAMPLES)
+        return 0.5 ** min(dt / self.half_life_s, self.half_life_s / GAIN_HALF_LIFE_S /
+                          GAIN_HALF_LIFE_SAMPLES)
 
     def note_prior(self, t: np.ndarray, p: np.ndarray, g: float) -> None:
         self.tp = g * self.tp + t * p
@@ -188,12 +188,12 @@ class Skill:
     ``note(target, model, prior)``: (N,) each, in force units: the learned target, the model's
     answer before learning it (None when there is no model yet) and the parametric part's.
     ``gains()`` -> (w, a, c): the model's weight in the blend, the prior's gain and the
-    confidence of the blended answer, (N,) each in [0, 1], over the last ``HALF_LIFE_S`` of
+    confidence of the blended answer, (N,) each in [0, 1], over the last ``GAIN_HALF_LIFE_S`` of
     learning time; ``long_gains()`` the same over ``LONG_HALF_LIFE_S`` (what a saved model
     carries).
     """
 
-    def __init__(self, N: int, half_life_s: float = HALF_LIFE_S,
+    def __init__(self, N: int, half_life_s: float = GAIN_HALF_LIFE_S,
                  long_half_life_s: float = LONG_HALF_LIFE_S):
         self.N = int(N)
         self.short = _Memory(N, half_life_s)

@@ -17,7 +17,7 @@ The learner (``learner.Learner``) is where everything is learned; where it runs 
   from the model that learned every message before it (one step ahead), as in the live node
   whose learner keeps up.
 
-Every answer passes one output gate (``answer.answer``).
+Every answer passes one output gate (``gate.answer``).
 """
 from __future__ import annotations
 

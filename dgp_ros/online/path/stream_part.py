@@ -12,14 +12,15 @@ This part is learned where every accepted message passes, at every message, in m
 
 * **recursive least squares** of each output on the persistent column's features (shared by
   every output: one Gram matrix), with forgetting (a sample's weight halves after
-  :data:`HALF_LIFE_S` of stamp time, at least :data:`HALF_LIFE_SAMPLES` messages) and a small
-  ridge (:data:`STREAM_RIDGE`), solved every :data:`SOLVE_EVERY_S` of stamps. The forgetting
-  is short on purpose: what the forces also ride on (an aircraft's pitch rate, flaps, the angle
-  of attack's rate) changes within a second and is not among the velocities; a part that tracks
-  it answers better one step ahead than one that averages it (on 5 A320 approaches, drag from 1
-  s: half-life 10 s 2.8e-3 .. 7.4e-3, 0.5 s 2.6e-4 .. 9.0e-4; with 5 % noise on every velocity
-  and force, 4.6e-3 .. 1.1e-2 against 6.7e-3 .. 1.9e-2). What the model keeps is not this
-  part: it learns from its history and window, and a saved model does not hold it;
+  :data:`FORGET_HALF_LIFE_S` of stamp time, at least :data:`FORGET_HALF_LIFE_SAMPLES` messages)
+  and a small ridge (:data:`STREAM_RIDGE`), solved every :data:`SOLVE_EVERY_S` of stamps. The
+  forgetting is short on purpose: what the forces also ride on (an aircraft's pitch rate,
+  flaps, the angle of attack's rate) changes within a second and is not among the velocities; a
+  part that tracks it answers better one step ahead than one that averages it (on 5 A320
+  approaches, drag from 1 s: half-life 10 s 2.8e-3 .. 7.4e-3, 0.5 s 2.6e-4 .. 9.0e-4; with 5 %
+  noise on every velocity and force, 4.6e-3 .. 1.1e-2 against 6.7e-3 .. 1.9e-2). What the model
+  keeps is not this part: it learns from its history and window, and a saved model does not
+  hold it;
 * **its one-step skill beside the model's**: every message is answered by both before either
   learns it; the exponentially weighted squared errors over :data:`SKILL_HALF_LIFE_S` give the
   part a weight ``u`` per output (:meth:`StreamPart.shares`, 0 wherever the model does no
@@ -44,12 +45,12 @@ from scipy.linalg import cho_factor, cho_solve, LinAlgError
 from dgp_ros.dynamics.coupling_track import CouplingTrack
 from dgp_ros.gp.policy import project_passive, projection_lambda
 
-__all__ = ['StreamPart', 'HALF_LIFE_S', 'SKILL_HALF_LIFE_S', 'SOLVE_EVERY_S']
+__all__ = ['StreamPart', 'FORGET_HALF_LIFE_S', 'SKILL_HALF_LIFE_S', 'SOLVE_EVERY_S']
 
 #: a learned sample's weight halves after this much stamp time (s), and no fewer messages (a
 #: slow stream: the features need samples)
-HALF_LIFE_S = 0.5
-HALF_LIFE_SAMPLES = 30
+FORGET_HALF_LIFE_S = 0.5
+FORGET_HALF_LIFE_SAMPLES = 30
 #: the one-step errors that weigh the part against the model: half-life in stamp time (s) ...
 SKILL_HALF_LIFE_S = 0.5
 #: ... and at least this many samples (a slow stream)
@@ -201,9 +202,10 @@ class StreamPart:
     # ------------------------------------------------------------------ learning
     @property
     def half_life_s(self) -> float:
-        """Return the forgetting's half-life (s): HALF_LIFE_S, or HALF_LIFE_SAMPLES intervals."""
-        return HALF_LIFE_S if self._dt is None else max(HALF_LIFE_S,
-                                                        HALF_LIFE_SAMPLES * self._dt)
+        """Return the forgetting's half-life (s): the constant, or its samples' intervals."""
+        if self._dt is None:
+            return FORGET_HALF_LIFE_S
+        return max(FORGET_HALF_LIFE_S, FORGET_HALF_LIFE_SAMPLES * self._dt)
 
     def _note_interval(self, stamps: np.ndarray) -> None:
         """Smooth the stream's interval with the median of the new stamps' (k,) intervals."""
