@@ -203,6 +203,34 @@ def _proc_mib(pid: int, field: str = 'VmRSS:', where: str = 'status') -> float:
     return float('nan')
 
 
+def _anon_parts(pid: int) -> dict:
+    """
+    Return the anonymous memory of process ``pid`` by kind of mapping (MiB; {} when gone).
+
+    ``heap``: the main heap (``[heap]``, glibc's main arena); ``large``: anonymous mappings of
+    8 MiB or more (glibc's thread arenas reserve 64 MiB each, OpenBLAS its 32 MiB buffers);
+    ``small``: the other anonymous mappings (numpy's large arrays, Python's 256 KiB arenas,
+    thread stacks).
+    """
+    out = {'heap': 0.0, 'large': 0.0, 'small': 0.0}
+    size, name = 0.0, ''
+    try:
+        with open(f'/proc/{pid}/smaps') as f:
+            for line in f:
+                head = line.split(None, 5)
+                if '-' in head[0] and len(head) >= 5 and head[0][0] in '0123456789abcdef' \
+                        and not head[0].endswith(':'):
+                    lo, hi = head[0].split('-')
+                    size = (int(hi, 16) - int(lo, 16)) / 2.0 ** 20
+                    name = head[5].strip() if len(head) > 5 else ''
+                elif head[0] == 'Anonymous:' and (not name or name == '[heap]'):
+                    kind = 'heap' if name else 'large' if size >= 8.0 else 'small'
+                    out[kind] += int(head[1]) / 1024.0
+    except OSError:
+        return {}
+    return out
+
+
 def run(a, work: str) -> dict:
     from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf
     env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_DOMAIN_ID=str(random.randint(150, 230)),
@@ -246,6 +274,8 @@ def run(a, work: str) -> dict:
                              ('learner_anon', ('Anonymous:', 'smaps_rollup'))):
                 row[key] = sum(_proc_mib(p, *fig) for p in learners) if learners \
                     else float('nan')
+            for p in learners[:1]:
+                row.update({f'learner_{k}': v for k, v in _anon_parts(p).items()})
             row.update({k: _proc_mib(p.pid) for k, p in procs.items()})
             samples.append(row)
             C.log(f'{SECTION}: {row["t"]:.0f} s ' + ' '.join(
@@ -284,7 +314,7 @@ def run(a, work: str) -> dict:
 def growth(samples: list, key: str, last_s: float) -> tuple:
     """Return (max - min MiB, slope MiB/h) of ``key`` over the last ``last_s`` s of samples."""
     t = np.array([s['t'] for s in samples])
-    y = np.array([s[key] for s in samples], float)
+    y = np.array([s.get(key, np.nan) for s in samples], float)
     keep = (t >= t[-1] - last_s) & np.isfinite(y)
     if keep.sum() < 2:
         return float('nan'), float('nan')
@@ -344,6 +374,17 @@ def report(a, r: dict, wall: float) -> str:
             C.md_table(['process', 'first', 'end', f'range, last {last / 60:.0f} min',
                         'slope (MiB/h)'], rows), '',
             f'![memory]({C.rel(png, a.out)})', '']
+    kinds = [k for k in ('learner_anon', 'learner_heap', 'learner_large', 'learner_small')
+             if any(k in x for x in s)]
+    if kinds:
+        parts = []
+        for k in kinds:
+            v = [x.get(k, float('nan')) for x in s]
+            parts.append(f'{k[8:]} {C.fmt(v[0])} -> {C.fmt(v[-1])} (range over the last '
+                         f'{last / 60:.0f} min {C.fmt(growth(s, k, last)[0])})')
+        body += ["The learner's anonymous memory by kind of mapping, MiB (`_anon_parts`: heap "
+                 "= glibc's main arena, large = mappings of 8 MiB or more: thread arenas and "
+                 'OpenBLAS buffers, small = the rest): ' + '; '.join(parts) + '.', '']
     for role, lines in r['trace'].items():
         top = lines[-1]['top'][:6]
         body += [f'tracemalloc, {role} at {lines[-1]["t"]:.0f} s (traced '

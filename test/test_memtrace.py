@@ -12,6 +12,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                                 'bench'))
@@ -30,6 +31,44 @@ while time.time() - t0 < 2.2:
     keep.append(bytearray(20000))      # the grower
     time.sleep(0.01)
 """
+
+
+HEAP = """
+import sys, threading
+import numpy as np
+from dgp_ros.online import memtrace
+if sys.argv[1] == 'bound' and not memtrace.bound_heap():
+    print('nan')
+    sys.exit(0)
+def anon():
+    with open('/proc/self/smaps_rollup') as f:
+        return next(int(x.split()[1]) for x in f if x.startswith('Anonymous:')) / 1024.0
+before = anon()
+np.ones(3 << 20).sum()              # a 24 MiB block freed: glibc's threshold follows it up
+def work(seed):
+    rng, keep = np.random.default_rng(seed), []
+    for _ in range(80):
+        a = np.ones(int(rng.integers(1 << 17, 1 << 21)))    # 1-16 MiB, in the thread's arena
+        keep.append(np.ones(64))                             # a small survivor after each
+        del a
+threads = [threading.Thread(target=work, args=(k,)) for k in range(2)]
+[t.start() for t in threads]
+[t.join() for t in threads]
+memtrace.trim()
+print(anon() - before)
+"""
+
+
+@pytest.mark.skipif(not os.path.exists('/proc/self/smaps_rollup'), reason='no /proc smaps')
+def test_a_bounded_heap_hands_back_what_threads_freed():
+    # two threads allocate and free 160 blocks of 1-16 MiB, each leaving a small survivor:
+    # in their arenas (glibc's default) the freed blocks stay resident, trimmed or not
+    grew = {m: float(subprocess.run([sys.executable, '-c', HEAP, m], capture_output=True,
+                                    text=True, check=True, timeout=60).stdout)
+            for m in ('free', 'bound')}
+    if np.isnan(grew['bound']):
+        pytest.skip('not glibc: nothing to bound')
+    assert grew['free'] > 20.0 and grew['bound'] < 5.0, grew       # MiB
 
 
 def test_a_growing_process_names_its_grower(tmp_path):

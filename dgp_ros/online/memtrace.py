@@ -8,6 +8,15 @@ it freed for reuse, so the resident memory of a learner process rose in steps ov
 The learner process calls it every ``TRIM_PERIOD_S`` (``online.child``); where there is no glibc
 it does nothing.
 
+``bound_heap()`` keeps what trimming cannot return from piling up: glibc serves an allocation
+below its mmap threshold from the calling thread's arena, and raises that threshold (up to
+32 MiB) each time a larger block is freed, so after the first big free the Gram matrices and
+copies of the learner's refit and rebase threads (0.1-30 MB each) come from their arenas,
+which fragment and hold their high-water mark: the learner's anonymous memory rose in arenas of
+those threads (two of 16 and 25 MiB after 25 minutes at 1 kHz) while its main heap stayed at
+39 MiB. A fixed threshold of ``MMAP_THRESHOLD`` bytes sends every block as large as that to
+its own mapping, returned when freed. The learner process sets it at its start.
+
 A soak (``bench/soak_live.py``) starts the node with ``DGP_TRACEMALLOC=PREFIX``; the node's
 process and its learner process (which inherits the environment) then each write one JSON line
 every ``DGP_TRACEMALLOC_S`` seconds (60) to ``PREFIX.<role>.<pid>.jsonl``: the traced total
@@ -25,7 +34,8 @@ import time
 import tracemalloc
 from typing import Optional
 
-__all__ = ['start_from_env', 'trim', 'ENV', 'PERIOD_ENV', 'TRIM_PERIOD_S']
+__all__ = ['start_from_env', 'trim', 'bound_heap', 'ENV', 'PERIOD_ENV', 'TRIM_PERIOD_S',
+           'MMAP_THRESHOLD']
 
 ENV = 'DGP_TRACEMALLOC'
 PERIOD_ENV = 'DGP_TRACEMALLOC_S'
@@ -33,19 +43,33 @@ PERIOD_ENV = 'DGP_TRACEMALLOC_S'
 TOP = 10
 #: how often the learner process hands the freed heap back (s)
 TRIM_PERIOD_S = 30.0
-_LIBC = []
+#: blocks of this many bytes or more get a mapping of their own (glibc's M_MMAP_THRESHOLD)
+MMAP_THRESHOLD = 1 << 20
+_M_MMAP_THRESHOLD = -3
+_LIBC = {}
+
+
+def _libc(name: str):
+    """Return glibc's function ``name``, or None where there is none (another C library)."""
+    if name not in _LIBC:
+        try:
+            import ctypes
+            _LIBC[name] = getattr(ctypes.CDLL('libc.so.6'), name)
+        except (OSError, AttributeError):
+            _LIBC[name] = None
+    return _LIBC[name]
 
 
 def trim() -> bool:
     """Return the freed heap to the system (glibc malloc_trim); False where there is none."""
-    if not _LIBC:
-        try:
-            import ctypes
-            _LIBC.append(ctypes.CDLL('libc.so.6').malloc_trim)
-        except (OSError, AttributeError):
-            _LIBC.append(None)
-    fn = _LIBC[0]
+    fn = _libc('malloc_trim')
     return bool(fn is not None and fn(0) >= 0)
+
+
+def bound_heap(threshold: int = MMAP_THRESHOLD) -> bool:
+    """Fix glibc's mmap threshold at ``threshold`` bytes (module docstring); False: not glibc."""
+    fn = _libc('mallopt')
+    return bool(fn is not None and fn(_M_MMAP_THRESHOLD, int(threshold)) == 1)
 
 
 def start_from_env(role: str) -> Optional[threading.Thread]:

@@ -24,7 +24,7 @@ from ..config import EstimatorConfig
 from ..learner.grounds import GAINS
 from ..learner.learner import Learner
 from ..learner.plan import PlanCache
-from ..memtrace import start_from_env as trace_memory, trim, TRIM_PERIOD_S
+from ..memtrace import bound_heap, start_from_env as trace_memory, trim, TRIM_PERIOD_S
 
 __all__ = ['LearnerLoop', 'child_main']
 
@@ -395,6 +395,7 @@ def child_main(cfg: dict, cmd, out, lock, ring_info, init, nice: int, variance: 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     got = lower_priority(sched, nice)
+    bound_heap()                 # large blocks in mappings of their own, not in arenas
     trace_memory('learner')      # a soak's tracemalloc (DGP_TRACEMALLOC), else none
     LearnerLoop(cfg, cmd, out, lock, ring_info, init, variance, residuals, got).run()
 
