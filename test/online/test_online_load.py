@@ -1,16 +1,14 @@
 """
 Reliability: load (issue 8, item 4).
 
-The quick soak (bench/soak.py --quick, 6 s at 1 kHz, buffer 400, async refits) must finish,
-report its numbers, and the invariant must hold (no non-finite or non-passive estimate). No
-timing is asserted here: the numbers are the bench's to report. It is a soak, marked ``slow``
-(``bash scripts/run_tests.sh -m slow``); the other tests here run by default.
+A paced stream in process (6 s at 1 kHz, buffer 400, async refits) must be answered
+throughout with the invariant holding (no non-finite or non-passive estimate) while refits run
+beside it; no timing is asserted here (the hour over DDS is ``bench/soak_live.py``'s to report).
+It is marked ``slow`` (``bash scripts/run_tests.sh -m slow``); the other tests here run by
+default.
 """
-import json
-import os
-import subprocess
-import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -18,27 +16,38 @@ import pytest
 from dgp_ros.gp import DiagDGP
 from dgp_ros.online import EstimatorConfig, OnlineEstimator
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
 
 @pytest.mark.slow
-def test_quick_soak_runs_and_holds_the_invariant(tmp_path):
-    out = tmp_path / 'soak.json'
-    proc = subprocess.run([sys.executable, os.path.join(REPO, 'bench', 'soak.py'), '--quick',
-                           '--duration', '6', '--buffer', '400', '--json', str(out)],
-                          capture_output=True, text=True, timeout=150, cwd=REPO)
-    assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-2000:]
-    rep = json.loads(out.read_text())
-    r = rep['inprocess']
-    assert r['messages'] == 6000
-    assert r['invariant']['non_finite'] == 0 and r['invariant']['non_passive'] == 0
-    for k in ('backlog', 'rss', 'refits', 'latency'):
-        assert r[k]
-    assert np.isfinite(r['rss']['growth_mib'])
+def test_a_paced_stream_is_answered_passively_while_refits_run():
+    rng = np.random.default_rng(0)
+    joints = ['alpha', 'beta', 'airspeed']
+    est = OnlineEstimator(EstimatorConfig(buffer_size=400, min_samples=50, joints=joints,
+                                          refit_mode='async'))
+    bad, answered, t0 = 0, 0, time.perf_counter()
+    try:
+        for i in range(6000):                     # 1 kHz, paced by the wall clock
+            due = t0 + 1e-3 * i
+            wait = due - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
+            t = 1e-3 * i
+            qd = np.array([0.05 + 0.08 * np.sin(0.7 * t), 0.04 * np.sin(1.1 * t + 1.0),
+                           70.0 + 8.0 * np.sin(0.23 * t)]) + rng.normal(scale=[2e-3, 1e-3, 0.1])
+            d = np.array([2.0 + 0.5 * np.sin(3 * qd[0]), 1.0 + qd[1] ** 2,
+                          0.3 + 0.01 * abs(qd[2] - 70.0)])
+            e = est.process(t, joints, qd, d * qd + rng.normal(scale=0.01, size=3))
+            answered += e is not None
+            if e is not None and not (np.isfinite(e.tau_hat).all() and np.isfinite(e.power)
+                                      and float(e.qd @ e.tau_hat) >= 0.0):
+                bad += 1
+        diag = est.diagnostics()
+    finally:
+        est.close(timeout=30)
+    assert answered == 6000 and bad == 0
+    assert diag['refits_ok'] >= 1 and diag['refits_failed'] == 0, diag['last_refit_error']
     # 100 Hz learning (default min_sample_interval_s) for 6 s fills a 400-sample window
-    assert r['buffer_fill'] == 400
-    assert r['samples_rate_limited'] > 4000
-    print(json.dumps({k: r[k] for k in ('backlog', 'rss', 'latency')}, indent=1))
+    assert diag['buffer_fill'] == 400
+    assert diag['samples_rate_limited'] > 4000
 
 
 def _slow_factory(event):
