@@ -110,8 +110,7 @@ class Learner:
                                self.refits, h, self._factory)
         self.switch = Switch(lock, self._settings, self.window, self.structure, self.served,
                              self.rebases, self.refits, h, self.save, lambda: self._last_t)
-        self.snapshots = Snapshots(self._settings, self.window, self.structure, self.grounds,
-                                   self.served)
+        self.snapshots = Snapshots()
         self.files = ModelFiles(lock, self._settings, self.window, self.structure, self.grounds,
                                 self.served, self.rebases, self.refits, self.switch, h)
 
@@ -357,7 +356,9 @@ class Learner:
     def snapshot(self, variance: bool = True, frozen: bool = False) -> Optional[Snapshot]:
         """Return what a prediction needs now, None before the first sample (``Snapshots``)."""
         with self._lock:
-            return self.snapshots.take(self._N, self._last_t, variance, frozen)
+            parts = (self.config.learning, self.window, self.structure, self.grounds,
+                     self.served)
+            return self.snapshots.take(parts, self._N, self._last_t, variance, frozen)
 
     # ------------------------------------------------------------------ the gains
     def skill_gains(self):

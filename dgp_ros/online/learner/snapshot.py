@@ -69,16 +69,13 @@ class Snapshots:
     """
     A part of the learner: it makes the snapshots, and keeps the last one (under its lock).
 
-    settings : returns the learner's configuration as it is now; window, structure, grounds,
-    served : the parts a snapshot is taken of. The last snapshot is handed out again while the
-    served model's ``version`` is the same; gains that moved without a new model (a sample the
-    buffer skips) travel in a copy of its fields (``Grounds.seq`` tells).
+    The parts a snapshot is taken of (the window, the prior, the gains, the served model) are
+    passed in each ``take``, not kept. The last snapshot is handed out again while the served
+    model's ``version`` is the same; gains that moved without a new model (a sample the buffer
+    skips) travel in a copy of its fields (``Grounds.seq`` tells).
     """
 
-    def __init__(self, settings, window, structure, grounds, served):
-        self._settings = settings
-        self._window, self._structure = window, structure
-        self._grounds, self._served = grounds, served
+    def __init__(self):
         self._last: Optional[Snapshot] = None
         self._gains = -1                  # the grounds' seq the last snapshot carries
 
@@ -86,25 +83,26 @@ class Snapshots:
         """Make the next snapshot anew (what it carries changed: gains, a residual bound)."""
         self._last = None
 
-    def take(self, N: Optional[int], learned_through: Optional[float], variance: bool = True,
-             frozen: bool = False) -> Optional[Snapshot]:
+    def take(self, parts, N: Optional[int], learned_through: Optional[float],
+             variance: bool = True, frozen: bool = False) -> Optional[Snapshot]:
         """
         Return what a prediction needs now (None before the first sample).
 
+        parts : (learning on, window, structure, grounds, served) as the learner has them now;
         N : the number of joints (None: not known yet); learned_through : the newest sample's
         learning time (s). variance : include what the posterior variance needs (the Cholesky
         factors). frozen : a self-contained copy for another process (``process.proxy``); else the
         snapshot refers to the live model (in-line use: the caller learns and answers in turn).
         """
-        win, served = self._window, self._served
+        learning, win, structure, grounds, served = parts
         if N is None or win.buffer is None:
             return None
         s = self._last
         if s is not None and s.version == served.version and \
                 (s.frozen, s.variance) == (frozen, variance or not frozen):
-            self._last = self._with_gains(s)       # the gains earned since, if any
+            self._last = self._with_gains(s, grounds, learning)     # the gains earned since
             return self._last
-        mean, std = self._structure.prior(win, N)
+        mean, std = structure.prior(win, N)
         model = served.model
         if model is not None and model.posterior_.structure.has_damping:
             # a model answers with its own prior and bounds: the same after a reload
@@ -120,23 +118,22 @@ class Snapshots:
             model = model.snapshot(variance=variance)
         self._last = self._with_gains(Snapshot(
             version=served.version, model=model, prior=mean, prior_std=std, force_bound=bound,
-            velocity_box=box, residual_bound=self._structure.residual_bound,
+            velocity_box=box, residual_bound=structure.residual_bound,
             learned_through=learned_through, frozen=frozen, variance=variance or not frozen,
-            per_joint=per_joint))
+            per_joint=per_joint), grounds, learning)
         return self._last
 
-    def _with_gains(self, snap: Snapshot) -> Snapshot:
+    def _with_gains(self, snap: Snapshot, grounds, learning: bool) -> Snapshot:
         """
-        Return ``snap`` carrying the gains as they are now.
+        Return ``snap`` carrying the gains of ``grounds`` as they are now.
 
         The last snapshot is returned as it is while no sample moved the gains; otherwise a
         copy of its fields (not of its model) with the new gains.
         """
-        g = self._grounds
-        if snap is self._last and self._gains == g.seq:
+        if snap is self._last and self._gains == grounds.seq:
             return snap
-        self._gains = g.seq
-        return dataclasses.replace(snap, **g.fields(self._settings().learning))
+        self._gains = grounds.seq
+        return dataclasses.replace(snap, **grounds.fields(learning))
 
 
 class SwapLog:
