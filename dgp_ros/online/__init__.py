@@ -9,14 +9,14 @@ No rclpy here (everything a node does can be done offline)::
     e = est.process(stamp_s, names, velocity, effort)          # -> Estimate, or None if rejected
     est.diagnostics()                                          # dict: level, message, counters
 
-Rooms, by who runs the code (docs/ARCHITECTURE.md has the map), each importing only those
-before it: ``config`` (the parameter table) and ``memtrace``; ``jobs`` (what replaces the served
-model: ``refits``, ``rebase``, ``switch``, ``worker``); ``learner`` (the learner's state and its
-steps: ``learner``, ``sampling``, ``window``, ``selection``, ``prior``, ``grounds``,
-``skill``, ``served``, ``snapshot``, ``plan``, ``files``, ``health``, ``report``); ``process``
-(the learner in a child process: ``proxy`` in the node, ``child`` in the learner process,
-``ring`` and ``commands`` between them); ``path`` (the node's thread, never waits:
-``estimator``, ``intake``, ``clock``, ``gate``, ``arrays``, ``stream_part``, ``health``).
+Rooms, by who runs the code (docs/ARCHITECTURE.md has the map), each importing only those before
+it: ``config`` (the parameter table) and ``memtrace``; ``jobs`` (what replaces the served model:
+``refits``, ``rebase``, ``switch``, ``worker``); ``learner`` (the learner's state and its steps:
+``learner``, ``sampling``, ``window``, ``selection``, ``prior``, ``grounds``, ``skill``,
+``served``, ``snapshot``, ``plan``, ``files``, ``parts``, ``health``, ``report``); ``process`` (the
+learner in a child process: ``proxy`` in the node, ``child`` in the learner process, ``ring`` and
+``commands`` between them); ``path`` (the node's thread, never waits: ``estimator``, ``intake``,
+``clock``, ``gate``, ``arrays``, ``stream_part``, ``health``).
 """
 from dgp_ros.gp import KINDS as MODELS
 from dgp_ros.gp import PASSIVITY_MODES

@@ -115,7 +115,7 @@ def test_each_module_of_the_learner_says_which_part_it_is():
     parts = {'learner/window.py': 'Window', 'learner/prior.py': 'Structure',
              'learner/grounds.py': 'Grounds', 'learner/served.py': 'Served',
              'jobs/refits.py': 'Refits', 'jobs/rebase.py': 'Rebases', 'jobs/switch.py': 'Switch',
-             'learner/sampling.py': 'Front', 'learner/files.py': 'ModelFiles',
+             'learner/sampling.py': 'Front',
              'learner/snapshot.py': 'Snapshots', 'path/intake.py': 'Intake',
              'path/clock.py': 'LearningClock'}
     for module, cls in parts.items():
@@ -127,3 +127,7 @@ def test_each_module_of_the_learner_says_which_part_it_is():
             'part of' in ' '.join((ast.get_docstring(next(
                 c for c in tree.body if isinstance(c, ast.ClassDef) and c.name == cls))
                 or '').split()).lower(), f'{module}: whose part is {cls}?'
+    # a module of steps on the parts (passed in each call, not kept) says so
+    with open(os.path.join(ONLINE, 'learner/files.py')) as fh:
+        doc = ast.get_docstring(ast.parse(fh.read()))
+    assert 'steps of' in ' '.join(doc.split()).lower() and 'parts.Parts' in doc

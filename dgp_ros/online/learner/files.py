@@ -1,25 +1,25 @@
 """
 The learner's model files: what a saved model carries, and a model taken in (no rclpy).
 
-A part of :class:`~dgp_ros.online.learner.Learner`. ``save`` writes the served model once it is
-caught up with what was learned (a rebase with a fresh structure when samples or history wait),
-with the gains it earned (``Grounds.record``: a frozen or loaded model answers with them).
-``adopt`` serves a model from outside (a model file at start, the last snapshot's model in a
-restarted learner process) and buffers its training samples; its certificate is proven again,
-never trusted.
+Steps of :class:`~dgp_ros.online.learner.Learner` on its parts (``parts.Parts``, passed in each
+call). ``save`` writes the served model once it is caught up with what was learned (a rebase with a
+fresh structure when samples or history wait), with the gains it earned (``Grounds.record``: a
+frozen or loaded model answers with them). ``adopt`` serves a model from outside (a model file at
+start, the last snapshot's model in a restarted learner process) and buffers its training samples;
+its certificate is proven again, never trusted.
 """
 from __future__ import annotations
 
 import copy
 import os
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
 from ..config import check_model_path
 from ..jobs.worker import prove
 
-__all__ = ['ModelFiles', 'forward_weights', 'FORWARD_FRACTION']
+__all__ = ['save', 'adopt', 'forward_weights', 'FORWARD_FRACTION']
 
 #: the newest fraction of the buffer (by learning order) a saved model is checked on
 FORWARD_FRACTION = 0.25
@@ -54,88 +54,75 @@ def forward_weights(model, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
     return np.where(e_gp > e_prior, e_prior / np.maximum(e_gp, 1e-300), 1.0)
 
 
-class ModelFiles:
+def save(parts, path: Optional[str] = None) -> str:
     """
-    Saving and adopting models (module docstring).
+    Save the served model atomically to ``path`` (default ``model_path``); returns it.
 
-    lock : the learner's lock; settings : returns the configuration as it is now; window,
-    structure, grounds, served, rebases, refits, switch : the parts a save reads and an adoption
-    feeds; health : the learner's ``LearnerHealth``.
+    ``parts``: the learner's parts as they are now (``Learner.parts``: its lock, settings,
+    window, structure, grounds, served model, rebases, switch). The model is copied under the
+    lock and written outside it, once learning has stopped (``Switch.wait_stopped``: a save
+    asked for while it stops writes the proven model).
     """
-
-    def __init__(self, lock, settings: Callable, window, structure, grounds, served, rebases,
-                 refits, switch, health):
-        self._lock, self._settings = lock, settings
-        self._window, self._structure, self._grounds = window, structure, grounds
-        self._served, self._rebases, self._refits = served, rebases, refits
-        self._switch, self._health = switch, health
-
-    def save(self, path: Optional[str] = None) -> str:
-        """
-        Save the served model atomically to ``path`` (default ``model_path``); returns it.
-
-        The model is copied under the lock and written outside it, once learning has stopped
-        (``Switch.wait_stopped``: a save asked for while it stops writes the proven model).
-        """
-        cfg = self._settings()
-        path = path or cfg.model_path
-        if not path:
-            raise ValueError('no path given and model_path is not set')
-        check_model_path(path)
-        self._switch.wait_stopped()
-        served = self._served
-        with self._lock:
-            if served.model is None:
-                raise RuntimeError('no trained model to save yet')
+    cfg = parts.settings()
+    path = path or cfg.model_path
+    if not path:
+        raise ValueError('no path given and model_path is not set')
+    check_model_path(path)
+    parts.switch.wait_stopped()
+    served, structure, lock = parts.served, parts.structure, parts.lock
+    with lock:
+        if served.model is None:
+            raise RuntimeError('no trained model to save yet')
+        model = copy.deepcopy(served.model)
+    if served.model is not None and parts.settings().learning and \
+            (served.unheld(parts.window.seq) or structure.history_grew() or
+             not structure.carried_by(model)):
+        with lock:
+            structure.reselect_soon()
+        parts.rebases.run()     # the saved prior and correction see the whole history
+        with lock:
             model = copy.deepcopy(served.model)
-        if served.model is not None and self._settings().learning and \
-                (served.unheld(self._window.seq) or self._structure.history_grew() or
-                 not self._structure.carried_by(model)):
-            with self._lock:
-                self._structure.reselect_soon()
-            self._rebases.run()     # the saved prior and correction see the whole history
-            with self._lock:
-                model = copy.deepcopy(served.model)
-        record = self._grounds.record()
-        if record is not None and not model.mean_.is_diagonal:
-            with self._lock:
-                Q, T = self._window.arrays()
-            w = forward_weights(model, Q, T)
-            record['model_weight'] = [min(float(a), float(b))
-                                      for a, b in zip(record['model_weight'], w)]
-        if record is not None:      # restored with the model (``Learner._load``)
-            model.grounds_ = record
-        path = os.path.abspath(path)
-        model.save(path)
-        return path
+    record = parts.grounds.record()
+    if record is not None and not model.mean_.is_diagonal:
+        with lock:
+            Q, T = parts.window.arrays()
+        w = forward_weights(model, Q, T)
+        record['model_weight'] = [min(float(a), float(b))
+                                  for a, b in zip(record['model_weight'], w)]
+    if record is not None:      # restored with the model (``Learner._load``)
+        model.grounds_ = record
+    path = os.path.abspath(path)
+    model.save(path)
+    return path
 
-    def adopt(self, model, source: str = '') -> int:
-        """
-        Serve ``model`` and buffer its training samples; returns the number of joints.
 
-        Raises ValueError when it does not fit the configuration. Its certificate is proven
-        again (never trusted from the file); one that does not hold serves with every answer
-        projected, as a refit's would.
-        """
-        cfg = self._settings()
-        kind = model.posterior_.structure.kind
-        if kind != cfg.model:
-            raise ValueError(f'{source or "the"} model is a {kind!r} model, config model='
-                             f'{cfg.model!r}')
-        X, Y = model.X_train_, model.Y_train_
-        if cfg.joints and X.shape[1] != len(cfg.joints):
-            raise ValueError(f'{source or "the"} model has N={X.shape[1]}, joints has '
-                             f'{len(cfg.joints)}')
-        if cfg.passivity != 'none' and model.passivity != cfg.passivity:
-            raise ValueError(f'{source or "the"} model passivity {model.passivity!r} != '
-                             f'{cfg.passivity!r}')
-        model.posterior_ = model.posterior_.ensure_factors()    # a snapshot is predict-only
-        model.grounds_ = None       # the learner's gains blend its answers (restore_grounds)
-        proof = prove(model, cfg.passivity)           # re-proves: never trusts the file
-        with self._lock:
-            self._health.proof_done(proof)
-            seq = self._window.adopt(X, Y)
-            self._rebases.restart()
-            self._served.based(model, seq, self._window.target_gen)
-            self._refits.adopted(model, X)
-        return X.shape[1]
+def adopt(parts, model, source: str = '') -> int:
+    """
+    Serve ``model`` and buffer its training samples; returns the number of joints.
+
+    ``parts``: the learner's parts as they are now (``Learner.parts``). Raises ValueError when
+    it does not fit the configuration. Its certificate is proven again (never trusted from the
+    file); one that does not hold serves with every answer projected, as a refit's would.
+    """
+    cfg = parts.settings()
+    kind = model.posterior_.structure.kind
+    if kind != cfg.model:
+        raise ValueError(f'{source or "the"} model is a {kind!r} model, config model='
+                         f'{cfg.model!r}')
+    X, Y = model.X_train_, model.Y_train_
+    if cfg.joints and X.shape[1] != len(cfg.joints):
+        raise ValueError(f'{source or "the"} model has N={X.shape[1]}, joints has '
+                         f'{len(cfg.joints)}')
+    if cfg.passivity != 'none' and model.passivity != cfg.passivity:
+        raise ValueError(f'{source or "the"} model passivity {model.passivity!r} != '
+                         f'{cfg.passivity!r}')
+    model.posterior_ = model.posterior_.ensure_factors()    # a snapshot is predict-only
+    model.grounds_ = None       # the learner's gains blend its answers (restore_grounds)
+    proof = prove(model, cfg.passivity)           # re-proves: never trusts the file
+    with parts.lock:
+        parts.health.proof_done(proof)
+        seq = parts.window.adopt(X, Y)
+        parts.rebases.restart()
+        parts.served.based(model, seq, parts.window.target_gen)
+        parts.refits.adopted(model, X)
+    return X.shape[1]

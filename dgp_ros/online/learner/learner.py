@@ -9,13 +9,11 @@ publishes what a prediction needs as an immutable
 never waits for the learner; in the node the learner lives in a child process
 (:mod:`dgp_ros.online.process.proxy`), in replay and tests in line (``refit_mode='sync'``).
 
-It is composed of parts, each a class that owns its state: ``sampling``, ``window``,
-``prior``, ``grounds``, ``served``, ``refits``, ``rebases``, ``switch``, ``snapshots``,
-``files`` (docs/ARCHITECTURE.md, "The learner's parts": what each owns, the path of a message
-and of a refit through them). A part calls another only through its public methods; the learner
-makes them, passes each what it needs, and makes them anew on a reset. It owns the one lock that
-guards them all, and hands it to the parts whose work runs in threads of its own; the lock is
-never held while a model is fitted or proven.
+It is composed of parts that own their state (``sampling``, ``window``, ``prior``, ``grounds``,
+``served``, ``refits``, ``rebases``, ``switch``, ``snapshots``) and steps on them (``files``),
+docs/ARCHITECTURE.md, "The learner's parts". Parts call each other through public methods; the
+learner makes them anew on a reset and passes them to the steps (``parts.Parts``). Its one lock
+guards them all and is never held while a model is fitted or proven.
 """
 from __future__ import annotations
 
@@ -28,9 +26,10 @@ import numpy as np
 
 from dgp_ros.gp import load_model, make_model
 
-from .files import ModelFiles
+from . import files
 from .grounds import Grounds
 from .health import LearnerHealth
+from .parts import Parts
 from .prior import Structure
 from .report import learner_status
 from .sampling import Front
@@ -43,6 +42,7 @@ from ..jobs.refits import Refits
 from ..jobs.switch import Switch
 
 __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
+
 
 #: structural fields: changing one at run time drops the model and refits
 STRUCTURAL = ('model', 'passivity', 'elements', 'prior', 'history_elements', 'bias',
@@ -111,11 +111,14 @@ class Learner:
         self.switch = Switch(lock, self._settings, self.window, self.structure, self.served,
                              self.rebases, self.refits, h, self.save, lambda: self._last_t)
         self.snapshots = Snapshots()
-        self.files = ModelFiles(lock, self._settings, self.window, self.structure, self.grounds,
-                                self.served, self.rebases, self.refits, self.switch, h)
 
     def _settings(self) -> EstimatorConfig:
         return self.config
+
+    def parts(self) -> Parts:
+        """Return the learner's parts as they are now (what its steps are passed, not kept)."""
+        return Parts(self._lock, self._settings, self.window, self.structure, self.grounds,
+                     self.served, self.rebases, self.refits, self.switch, self.health)
 
     # ------------------------------------------------------------------ state
     @property
@@ -356,9 +359,7 @@ class Learner:
     def snapshot(self, variance: bool = True, frozen: bool = False) -> Optional[Snapshot]:
         """Return what a prediction needs now, None before the first sample (``Snapshots``)."""
         with self._lock:
-            parts = (self.config.learning, self.window, self.structure, self.grounds,
-                     self.served)
-            return self.snapshots.take(parts, self._N, self._last_t, variance, frozen)
+            return self.snapshots.take(self.parts(), self._N, self._last_t, variance, frozen)
 
     # ------------------------------------------------------------------ the gains
     def skill_gains(self):
@@ -478,11 +479,11 @@ class Learner:
 
     def save(self, path: Optional[str] = None) -> str:
         """Save the served model atomically to ``path`` (default ``model_path``; ``files``)."""
-        return self.files.save(path)
+        return files.save(self.parts(), path)
 
     def adopt(self, model, source: str = '') -> None:
-        """Serve ``model`` and buffer its training samples (``ModelFiles.adopt``)."""
-        N = self.files.adopt(model, source)
+        """Serve ``model`` and buffer its training samples (``files.adopt``)."""
+        N = files.adopt(self.parts(), model, source)
         with self._lock:
             self._N = N
 

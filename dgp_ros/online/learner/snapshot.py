@@ -88,13 +88,16 @@ class Snapshots:
         """
         Return what a prediction needs now (None before the first sample).
 
-        parts : (learning on, window, structure, grounds, served) as the learner has them now;
-        N : the number of joints (None: not known yet); learned_through : the newest sample's
-        learning time (s). variance : include what the posterior variance needs (the Cholesky
-        factors). frozen : a self-contained copy for another process (``process.proxy``); else the
-        snapshot refers to the live model (in-line use: the caller learns and answers in turn).
+        parts : the learner's parts now (``parts.Parts``: settings, window, structure, grounds,
+        served are read); N : the number of joints (None: not known yet); learned_through : the
+        newest sample's learning time (s). variance : include what the posterior variance needs
+        (the Cholesky factors). frozen : a self-contained copy for another process
+        (``process.proxy``); else the snapshot refers to the live model (in-line use: the caller
+        learns and answers in turn).
         """
-        learning, win, structure, grounds, served = parts
+        win, structure, grounds, served = parts.window, parts.structure, parts.grounds, \
+            parts.served
+        learning = parts.settings().learning
         if N is None or win.buffer is None:
             return None
         s = self._last
