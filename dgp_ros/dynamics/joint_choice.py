@@ -44,9 +44,10 @@ class JointChoice:
         the newest blocks, or across the two halves of the run (each fitted on one half and
         scored on the other: the whole run's evidence, where the newest blocks may hold the
         joint moving one way only) and no worse on the newest blocks. While a half holds fewer
-        than ``MIN_HALF_SAMPLES``, a structure chosen with offsets keeps them on every joint
-        (the real Panda at 30 Hz, 217 samples: held out 0.733 -> 0.679, its Coulomb-viscous
-        refit 0.705; the real UR10 learned on its first 20 %: 0.0755 -> 0.0447).
+        than ``MIN_HALF_SAMPLES``, a structure chosen with offsets keeps them on every joint:
+        the newest blocks cannot tell an offset from a joint that moved one way there (the
+        real Panda at 30 Hz, 217 samples: its sixth joint turned mostly one way, then the other,
+        and only its offset held out better than the Coulomb-viscous refit of the same data).
         """
         family, _, cons = best
         with_ = per_joint.get((family, True, cons))
