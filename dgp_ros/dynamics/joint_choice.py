@@ -47,7 +47,7 @@ class JointChoice:
         than ``MIN_HALF_SAMPLES``, a structure chosen with offsets keeps them on every joint:
         the newest blocks cannot tell an offset from a joint that moved one way there (the
         real Panda at 30 Hz, 217 samples: its sixth joint turned mostly one way, then the other,
-        and only its offset held out better than the Coulomb-viscous refit of the same data).
+        and the part held out needed the offset the newest blocks refused).
         """
         family, _, cons = best
         with_ = per_joint.get((family, True, cons))
