@@ -218,8 +218,7 @@ def _anon_parts(pid: int) -> dict:
         with open(f'/proc/{pid}/smaps') as f:
             for line in f:
                 head = line.split(None, 5)
-                if '-' in head[0] and len(head) >= 5 and head[0][0] in '0123456789abcdef' \
-                        and not head[0].endswith(':'):
+                if not head[0].endswith(':'):       # a mapping's line: 'lo-hi perms ... name'
                     lo, hi = head[0].split('-')
                     size = (int(hi, 16) - int(lo, 16)) / 2.0 ** 20
                     name = head[5].strip() if len(head) > 5 else ''
@@ -274,8 +273,8 @@ def run(a, work: str) -> dict:
                              ('learner_anon', ('Anonymous:', 'smaps_rollup'))):
                 row[key] = sum(_proc_mib(p, *fig) for p in learners) if learners \
                     else float('nan')
-            for p in learners[:1]:
-                row.update({f'learner_{k}': v for k, v in _anon_parts(p).items()})
+            if learners:                # the first learner's, by kind of mapping
+                row.update({f'learner_{k}': v for k, v in _anon_parts(learners[0]).items()})
             row.update({k: _proc_mib(p.pid) for k, p in procs.items()})
             samples.append(row)
             C.log(f'{SECTION}: {row["t"]:.0f} s ' + ' '.join(
@@ -380,8 +379,9 @@ def report(a, r: dict, wall: float) -> str:
         parts = []
         for k in kinds:
             v = [x.get(k, float('nan')) for x in s]
-            parts.append(f'{k[8:]} {C.fmt(v[0])} -> {C.fmt(v[-1])} (range over the last '
-                         f'{last / 60:.0f} min {C.fmt(growth(s, k, last)[0])})')
+            parts.append(f'{k.removeprefix("learner_")} {C.fmt(v[0])} -> {C.fmt(v[-1])} '
+                         f'(range over the last {last / 60:.0f} min '
+                         f'{C.fmt(growth(s, k, last)[0])})')
         body += ["The learner's anonymous memory by kind of mapping, MiB (`_anon_parts`: heap "
                  "= glibc's main arena, large = mappings of 8 MiB or more: thread arenas and "
                  'OpenBLAS buffers, small = the rest): ' + '; '.join(parts) + '.', '']

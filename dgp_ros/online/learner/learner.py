@@ -43,7 +43,6 @@ from ..jobs.switch import Switch
 
 __all__ = ['Learner', 'STRUCTURAL', 'FRONT_END']
 
-
 #: structural fields: changing one at run time drops the model and refits
 STRUCTURAL = ('model', 'passivity', 'elements', 'prior', 'history_elements', 'bias',
               'buffer_size', 'buffer_policy', 'joints', 'operating_domain', 'inverse_dynamics',
@@ -111,14 +110,15 @@ class Learner:
         self.switch = Switch(lock, self._settings, self.window, self.structure, self.served,
                              self.rebases, self.refits, h, self.save, lambda: self._last_t)
         self.snapshots = Snapshots()
+        self._parts = Parts(lock, self._settings, self.window, self.structure, self.grounds,
+                            self.served, self.rebases, self.refits, self.switch, h)
 
     def _settings(self) -> EstimatorConfig:
         return self.config
 
     def parts(self) -> Parts:
         """Return the learner's parts as they are now (what its steps are passed, not kept)."""
-        return Parts(self._lock, self._settings, self.window, self.structure, self.grounds,
-                     self.served, self.rebases, self.refits, self.switch, self.health)
+        return self._parts          # made anew with them (``_init_state``), only there
 
     # ------------------------------------------------------------------ state
     @property

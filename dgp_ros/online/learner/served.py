@@ -19,7 +19,6 @@ A part of :class:`~dgp_ros.online.learner.Learner`, called under the learner's l
 """
 from __future__ import annotations
 
-
 __all__ = ['Served']
 
 
