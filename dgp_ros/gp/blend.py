@@ -58,7 +58,8 @@ def prior_answer(mean, Q: np.ndarray, a: Optional[np.ndarray] = None, want_D: bo
 
 
 def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], mean,
-          w: np.ndarray, a: np.ndarray, per_joint: bool):
+          w: np.ndarray, a: np.ndarray, per_joint: bool,
+          prior_diag: Optional[np.ndarray] = None):
     """
     Blend answers toward the fallback (module docstring).
 
@@ -66,7 +67,9 @@ def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], mean,
     not computed; then ``per_joint`` must be False); mean : the passive prior; w, a : (N,) the
     model's weight and the prior's gain. ``per_joint``: the congruence blend (keeps a PSD
     symmetric part; a diagonal prior only), else one scalar ``min(w)`` per answer (keeps
-    ``q^T tau >= 0`` of a passive answer). Returns (tau', D' or None).
+    ``q^T tau >= 0`` of a passive answer). ``prior_diag`` : (k, N) ``mean.diag(Q)`` where the
+    caller has it already (a diagonal prior; the message path computes it once per answer).
+    Returns (tau', D' or None).
     """
     if not mean.is_diagonal:
         # joint by joint, then projected: a coupled prior carries whole forces (an aircraft's
@@ -81,7 +84,8 @@ def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], mean,
             Db = w[:, None] * D + (1.0 - w)[:, None] * Dp
             Db[:, np.arange(Q.shape[1]), np.arange(Q.shape[1])] += lam[:, None]
         return project_passive(Q, tb), Db
-    prior_diag = np.asarray(mean.diag(Q), float)
+    if prior_diag is None:
+        prior_diag = np.asarray(mean.diag(Q), float)
     if per_joint and D is not None:
         s = np.sqrt(w)
         Db = D * (s[:, None] * s[None, :])

@@ -110,14 +110,18 @@ class AnswerPlan:
         G[:, self.rows, self.cols] = Gf
         return G
 
-    def answers(self, Q: np.ndarray, want_D: bool):
+    def answers(self, Q: np.ndarray, want_D: bool, prior_diag: Optional[np.ndarray] = None):
         """
         Return (tau (k, N), D (k, N, N) or None) at velocities Q, as the model answers them.
 
-        ``model.predict_with_damping(Q, False, want_D)`` up to rounding.
+        ``model.predict_with_damping(Q, False, want_D)`` up to rounding. ``prior_diag`` : (k, N)
+        the diagonal prior's ``diag(Q)`` where the caller has it already (the gate's blend
+        needs it too), else computed here.
         """
         if Q.shape[0] > CHUNK:
-            parts = [self.answers(Q[i:i + CHUNK], want_D) for i in range(0, Q.shape[0], CHUNK)]
+            dg = prior_diag
+            parts = [self.answers(Q[i:i + CHUNK], want_D, None if dg is None else dg[i:i + CHUNK])
+                     for i in range(0, Q.shape[0], CHUNK)]
             D = None if parts[0][1] is None else np.concatenate([d for _, d in parts])
             return np.concatenate([t for t, _ in parts]), D
         pol = self.policy
@@ -130,7 +134,7 @@ class AnswerPlan:
             C = G * self.dscale
             D = C if w is None else w[:, None, None] * C
             if self.mean.is_diagonal:
-                dg = self.mean.diag(Q)
+                dg = self.mean.diag(Q) if prior_diag is None else prior_diag
                 D.reshape(len(D), self.N * self.N)[:, ::self.N + 1] += dg     # the diagonal
             else:
                 D = D + self.mean.matrix(Q)

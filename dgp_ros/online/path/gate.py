@@ -92,8 +92,11 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
         per_joint = mix and snap.per_joint
         try:
             plan = None if want_stddev or plans is None else plans.get(snap.model)
+            # the blend's prior is the plan's mean (the learner's): its diagonal computed once
+            dg = np.asarray(snap.prior.diag(Q), float) if mix and plan is not None and \
+                plan.mean is snap.prior and snap.prior.is_diagonal else None
             if plan is not None:
-                (tau, D), var = plan.answers(Q, want_damping or per_joint), None
+                (tau, D), var = plan.answers(Q, want_damping or per_joint, dg), None
             else:
                 tau, var, D = snap.model.predict_with_damping(Q, want_stddev,
                                                               want_damping or per_joint)
@@ -102,7 +105,7 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
             source[:] = 'model'
             conf[:] = 1.0 if snap.confidence is None else snap.confidence
             if mix:
-                tau, D = blend(Q, tau, D, snap.prior, w, snap.prior_gain, per_joint)
+                tau, D = blend(Q, tau, D, snap.prior, w, snap.prior_gain, per_joint, dg)
                 if not want_damping:
                     D = None
         except Exception as exc:        # noqa: BLE001 - the answer falls back to the prior

@@ -229,10 +229,14 @@ class StreamPart:
         stamps = np.asarray(stamps, float)
         if not stamps.size:
             return
-        self._score(stamps, T, model, part, model if published is None else published)
         if lag > LAG_WARN_S:
             self.lag_at = float(stamps[-1])
             self.lag_max = max(self.lag_max, float(lag))
+        if not self.track.cols:
+            # silent for good (no candidate column comes back; an arm's velocities reverse
+            # within seconds): the skill and the track would be kept for nobody to read
+            return
+        self._score(stamps, T, model, part, model if published is None else published)
         dead = self.track.observe(Q)
         if dead:
             keep = np.setdiff1d(np.arange(self.track.K), self.track.drop_slices(dead))
