@@ -57,13 +57,14 @@ def _friction_diag(a: np.ndarray, coef: np.ndarray, eps: np.ndarray,
     if K == 0 and not S:
         return out
     T = _tanh_over(a[..., None], eps)                                 # (..., N, K + 1)
+    terms = coef[..., 1:1 + K] * T[..., :K]                            # each product once
     for k in range(K):
-        out += coef[..., 1 + k] * T[..., k]
+        out += terms[..., k]
     if S:
-        t = T[..., K]
         G = np.exp(-(a[..., None] / vs) ** 2)                           # (..., N, S)
+        terms = coef[..., 1 + K:1 + K + S] * T[..., K:K + 1] * G       # (c t) g, as written
         for s in range(S):
-            out += coef[..., 1 + K + s] * t * G[..., s]
+            out += terms[..., s]
     return out
 
 

@@ -90,6 +90,10 @@ class Certificate:
 
 
 # ---------------------------------------------------------------------------- numerics
+#: ``8 eps`` of float64: the rounding of a sum of products, relative to the sum of magnitudes
+_ROUNDING = 8.0 * np.finfo(float).eps
+
+
 def passive_tolerance(Q: np.ndarray, Tau: np.ndarray) -> np.ndarray:
     """
     Return the rounding tolerance of ``q^T tau`` per row, (k,): ``8 eps sum_n |q_n| |tau_n|``.
@@ -97,7 +101,7 @@ def passive_tolerance(Q: np.ndarray, Tau: np.ndarray) -> np.ndarray:
     A computed power in ``[-tol, 0)`` is rounding, not a violation; the decisions that replace an
     estimate use ``P < -tol``.
     """
-    return 8.0 * np.finfo(float).eps * np.einsum('ij,ij->i', np.abs(Q), np.abs(Tau))
+    return _ROUNDING * np.einsum('ij,ij->i', np.abs(Q), np.abs(Tau))
 
 
 def projection_lambda(Q: np.ndarray, Tau: np.ndarray, w_inv: Optional[np.ndarray] = None
