@@ -314,6 +314,10 @@ class JointElementMean(PriorMean):
                 raise ValueError('span must be two (N,) arrays with lo <= hi')
             self.span = (lo, hi)
         self.active = np.flatnonzero(np.any(self.W != 0.0, axis=1))
+        j = self.active
+        # what every answer reads of the active joints, gathered once (the message path's cost)
+        self._on = (self.W[j], basis.vc[j] ** 2, basis.eps[j],
+                    None if self.span is None else (self.span[0][j], self.span[1][j]))
         # |g| <= sum |w| and |dg/du| <= sum |w| omega: the interval bounds' constants
         self._gmax = np.abs(self.W).sum(axis=1)
         self._lip = np.abs(self.W) @ basis.omega
@@ -334,24 +338,19 @@ class JointElementMean(PriorMean):
             out = np.tanh(A / eps) / np.where(small, 1.0, A)
         return np.where(small, 1.0 / eps, out)
 
-    def _g(self, V: np.ndarray, j: np.ndarray) -> np.ndarray:
-        """``g`` of joints ``j`` at their velocities V (..., len(j))."""
-        b = self.basis
-        if self.span is not None:
-            V = np.clip(V, self.span[0][j], self.span[1][j])
-        U = V / np.sqrt(V * V + b.vc[j] ** 2)
-        S = np.sin(b.omega * (U[..., None] + 1.0))                      # (..., n, M)
-        S *= self.W[j]
-        return S.sum(axis=-1)
-
     def element_diag(self, Qd) -> np.ndarray:
         """Return the elements' part of ``m_d`` (before the floor), (k, N)."""
         Qd = np.asarray(Qd, float)
         out = np.zeros(Qd.shape)
         j = self.active
         if j.size:
+            W, vc2, eps, span = self._on
             V = Qd[..., j]
-            out[..., j] = self._g(V, j) * self._t(np.abs(V), self.basis.eps[j])
+            G = V if span is None else np.clip(V, span[0], span[1])
+            U = G / np.sqrt(G * G + vc2)
+            S = np.sin(self.basis.omega * (U[..., None] + 1.0))         # (..., n, M)
+            S *= W
+            out[..., j] = S.sum(axis=-1) * self._t(np.abs(V), eps)   # g(v) t(|v|)
         return out
 
     def element_force(self, Qd) -> np.ndarray:
