@@ -31,8 +31,11 @@ just learned:
 
 ``LIMITS`` are the thresholds of the ledger's tests (``test/test_accuracy_ledger.py``, in the
 default suite): about 1.4 x the best value this project has reached on each figure, so that a
-1.5x loss of any of them fails CI. The section in docs/BENCHMARKS.md keeps one row per commit
-(re-running at a commit replaces its row). Full mode adds the A320 with hand-picked settings
+1.5x loss of any of them fails CI, on the worse of the machine kinds measured where the figure
+depends on the machine (the A320's side force in the first 20 s: its structure choice is a near
+tie that rounding decides, 6.6e-7 on an Intel Xeon, 3.9e-6 on an AMD EPYC for the same code).
+The section in docs/BENCHMARKS.md keeps one row per commit (re-running at a commit replaces
+its row). Full mode adds the A320 with hand-picked settings
 (prior, passivity, bias) beside the defaults.
 
 Usage: bench/ledger.py [--quick] [--out DIR] [--data DIR]
@@ -61,7 +64,7 @@ SIM_LEARN = 0.6
 #: thresholds of the ledger's tests: ~1.4 x the best reached (module docstring); the A320 rows
 #: are per output (alpha, beta, airspeed)
 LIMITS = {
-    'a320_early': (0.0068, 2.0e-6, 0.0084),
+    'a320_early': (0.0068, 5.5e-6, 0.0084),
     'a320_whole': (0.0025, 3.3e-5, 0.0025),
     # every flight of the family (issue 36's bars): whole, first 20 s, worst 1 s window
     'family_whole': 5e-3,
