@@ -22,14 +22,11 @@ Usage: bench/arm_offline.py [--quick] [--out DIR]
 """
 from __future__ import annotations
 
-import os
 import sys
 import tempfile
 import time
 
 import numpy as np
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common as C  # noqa: E402
 from robot_arms_runs import make_data, residual_stream  # noqa: E402
