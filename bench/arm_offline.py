@@ -189,7 +189,6 @@ def main(argv=None) -> int:
                     'met' if sum(negs) == 0 else '**missed**', str(sum(negs))])
     L += ['### Targets', '', C.md_table(['target', 'status', 'measured'], tgt)]
     C.write_section(a.out, NAME, '\n'.join(L))
-    C.log(f'{NAME}: wrote section in {wall:.1f} s')
     return 0
 
 

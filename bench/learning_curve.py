@@ -142,7 +142,6 @@ def main(argv=None) -> int:
                         for k, v in falls.items())
             + f'.\n\n![learning curve]({C.rel(png, a.out)})\n')
     C.write_section(a.out, NAME, body)
-    C.log(f'wrote section {NAME}')
     return 0
 
 
