@@ -47,7 +47,8 @@ import sys
 import time
 import traceback
 
-from family_io import add_options, fmt, nmse, parse_set, per_out, tag_and_where, write
+from family_io import add_options, course_point, fmt, nmse, parse_set, per_out, tag_and_where, \
+    windows, write
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -178,18 +179,6 @@ def flight(index: int, cache: str, log=print) -> dict:
 # ------------------------------------------------------------------------------ scoring
 
 
-def _windows(P, T, t, width_s: float = 1.0):
-    """NMSE per output of every 1 s window after the first second, over the flight's variance."""
-    var = T.var(axis=0)
-    out, starts = [], []
-    for w in range(1, int((t[-1] - t[0]) // width_s) + 1):
-        s = (t >= t[0] + w * width_s) & (t < t[0] + (w + 1) * width_s)
-        if s.sum() >= 10:
-            out.append(((P[s] - T[s]) ** 2).mean(axis=0) / var)
-            starts.append(w * width_s)
-    return np.array(starts), np.array(out)
-
-
 def score(fl: dict) -> dict:
     """Stream the flight through the defaults (ledger.a320_case) and score it."""
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
@@ -197,28 +186,21 @@ def score(fl: dict) -> dict:
     names = list(fl['joint_names'])
     est = OnlineEstimator(EstimatorConfig(**dict(PARAMS, refit_mode='sync')))
     P = np.zeros_like(T)
-    course, last_key = [], None
+    course = []
     per_s = max(1, int(round(1.0 / np.median(np.diff(t)))))
     t0 = time.perf_counter()
     for i in range(len(t)):
         P[i] = est.predict(Q[i])[0]        # before it is learned (one step ahead)
         est.process(float(t[i]), names, Q[i], T[i])
         if (i + 1) % per_s == 0:
-            d = est.diagnostics()
-            key = (d.get('elements'), d.get('structure'))
-            if key != last_key:
-                course.append({'t': float(t[i]), 'elements': d.get('elements'),
-                               'structure': d.get('structure'),
-                               'elements_scores': d.get('elements_scores'),
-                               'refits_ok': d.get('refits_ok')})
-                last_key = key
+            course_point(est, t[i], course)
     wall = time.perf_counter() - t0
     d = est.diagnostics()
     est.close()
     # scored from 1 s on (the first answer has nothing learned: zero), as the windows are
     on = t >= t[0] + 1.0
     early = on & (t <= t[0] + EARLY_S)
-    starts, W = _windows(P, T, t)
+    starts, W = windows(P, T, t, first=1)
     bad = [(float(s), [float(x) for x in w]) for s, w in zip(starts, W) if w.max() > BARS[
         'window_max']]
     return {'early': nmse(P[early], T[early]), 'whole': nmse(P[on], T[on]),

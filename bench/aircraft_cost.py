@@ -28,8 +28,6 @@ import time
 import numpy as np
 from scipy.linalg import cholesky
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 import common as C  # noqa: E402
 
 NAME = 'aircraft_cost'

@@ -43,8 +43,6 @@ from typing import List, Optional
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 from arm_live import run_one, Scenario  # noqa: E402, I100
 from arm_live_report import fmt_ms, summarize  # noqa: E402, I201
 import common as C  # noqa: E402

@@ -48,8 +48,6 @@ from typing import Dict, List
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 from arm_live_report import fmt_ms, section, summarize  # noqa: E402
 import common as C  # noqa: E402
 from cpu_watch import CpuWatch, learner_pids  # noqa: E402

@@ -22,14 +22,11 @@ Usage: bench/arm_offline.py [--quick] [--out DIR]
 """
 from __future__ import annotations
 
-import os
 import sys
 import tempfile
 import time
 
 import numpy as np
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common as C  # noqa: E402
 from robot_arms_runs import make_data, residual_stream  # noqa: E402
@@ -192,7 +189,6 @@ def main(argv=None) -> int:
                     'met' if sum(negs) == 0 else '**missed**', str(sum(negs))])
     L += ['### Targets', '', C.md_table(['target', 'status', 'measured'], tgt)]
     C.write_section(a.out, NAME, '\n'.join(L))
-    C.log(f'{NAME}: wrote section in {wall:.1f} s')
     return 0
 
 

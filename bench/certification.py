@@ -27,8 +27,6 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 import common as C  # noqa: E402
 
 NAME = 'certification'
@@ -327,19 +325,7 @@ def report(a, P, A, wall, data_path):
 
 
 def main(argv=None) -> int:
-    a = C.parse_args(__doc__.strip().splitlines()[0], argv, _extra)
-    t0 = time.perf_counter()
-    path = panda_dir(a.data)
-    P = None
-    if path is None:
-        C.log(f'{NAME}: real Panda data not found: that part is skipped')
-    else:
-        P = panda_part(a, path)
-    A = a320_part(a)
-    wall = time.perf_counter() - t0
-    C.write_section(a.out, NAME, report(a, P, A, wall, path))
-    C.log(f'{NAME}: wrote section in {wall:.1f} s')
-    return 0
+    return C.panda_a320_main(NAME, argv, _extra, panda_dir, panda_part, a320_part, report)
 
 
 if __name__ == '__main__':

@@ -104,7 +104,31 @@ def write_section(out: str, name: str, body: str) -> str:
             os.fsync(f.fileno())
         finally:
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    log(f'{name}: wrote its section of {path}')
     return path
+
+
+def panda_a320_main(name: str, argv, extra, panda_dir, panda_part, a320_part, report) -> int:
+    """
+    Run the ``main`` of a script of a real-Panda part (skipped without data) and an A320 part.
+
+    Parses the common options with ``extra``, runs ``panda_part(a, path)`` when
+    ``panda_dir(a.data)`` finds the data, then ``a320_part(a)``, and writes section ``name``
+    from ``report(a, P, A, wall, path)``.
+    """
+    doc = sys.modules[panda_part.__module__].__doc__
+    a = parse_args(doc.strip().splitlines()[0], argv, extra)
+    t0 = time.perf_counter()
+    path = panda_dir(a.data)
+    P = None
+    if path is None:
+        log(f'{name}: real Panda data not found: that part is skipped')
+    else:
+        P = panda_part(a, path)
+        log(f'{name}: Panda part in {time.perf_counter() - t0:.1f} s')
+    A = a320_part(a)
+    write_section(a.out, name, report(a, P, A, time.perf_counter() - t0, path))
+    return 0
 
 
 def read_section(out: str, name: str) -> Optional[str]:

@@ -51,7 +51,8 @@ import sys
 import time
 import traceback
 
-from family_io import add_options, fmt, nmse, parse_set, per_out, tag_and_where, write
+from family_io import add_options, course_point, fmt, nmse, parse_set, per_out, tag_and_where, \
+    windows, write
 import numpy as np
 
 RATE_HZ = 100.0
@@ -174,17 +175,6 @@ class System:
 # ------------------------------------------------------------------------------ scoring
 
 
-def _windows(P, T, t, var, width_s: float = 1.0):
-    """NMSE per output of every 1 s window (from 0), over ``var``; (starts, (W, N))."""
-    starts, out = [], []
-    for w in range(int((t[-1] - t[0]) // width_s) + 1):
-        s = (t >= t[0] + w * width_s) & (t < t[0] + (w + 1) * width_s)
-        if s.sum() >= 10:
-            starts.append(w * width_s)
-            out.append(((P[s] - T[s]) ** 2).mean(axis=0) / var)
-    return np.array(starts), np.array(out)
-
-
 def run_system(sysm: System, duration_s: float, last_s: float) -> dict:
     """Stream one system through the defaults; the scores (module docstring)."""
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
@@ -193,7 +183,7 @@ def run_system(sysm: System, duration_s: float, last_s: float) -> dict:
     est = OnlineEstimator(EstimatorConfig(**dict(PARAMS, refit_mode='sync')))
     P = np.zeros_like(T)
     P2 = np.full_like(T, np.nan)
-    course, last_key = [], None
+    course = []
     per_s = int(round(RATE_HZ))
     t0 = time.perf_counter()
     for i in range(len(t)):
@@ -202,14 +192,7 @@ def run_system(sysm: System, duration_s: float, last_s: float) -> dict:
         if e is not None:
             P2[i] = e.tau_hat
         if (i + 1) % per_s == 0:
-            d = est.diagnostics()
-            key = (d.get('elements'), d.get('structure'))
-            if key != last_key:
-                course.append({'t': float(t[i]), 'elements': d.get('elements'),
-                               'structure': d.get('structure'),
-                               'elements_scores': d.get('elements_scores'),
-                               'refits_ok': d.get('refits_ok')})
-                last_key = key
+            course_point(est, t[i], course)
     wall = time.perf_counter() - t0
     d = est.diagnostics()
     last = t >= t[-1] - last_s + 1e-9
@@ -229,7 +212,7 @@ def run_system(sysm: System, duration_s: float, last_s: float) -> dict:
     Tc = sysm.force(Vc)
     Pc = est.predict(Vc)
     var_all = T.var(axis=0)
-    starts, W = _windows(P, T, t, var_all)
+    starts, W = windows(P, T, t, var_all)
     wmax = W[1:].max(axis=0)
     wat = starts[1:][W[1:].argmax(axis=0)]
     est.close()

@@ -19,14 +19,11 @@ Usage: bench/element_cost.py [--quick] [--out DIR]
 """
 from __future__ import annotations
 
-import os
 import sys
 import time
 
 import numpy as np
 from scipy.linalg import cholesky
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import common as C  # noqa: E402
 

@@ -44,6 +44,33 @@ def nmse(p, r):
     return ((p - r) ** 2).mean(axis=0) / r.var(axis=0)
 
 
+def windows(P, T, t, var=None, first: int = 0, width_s: float = 1.0):
+    """
+    NMSE per output of every ``width_s`` window from window ``first`` on; (starts, (W, N)).
+
+    Over ``var`` (default: the variance of all of ``T``); windows of fewer than 10 samples skipped.
+    """
+    var = T.var(axis=0) if var is None else var
+    starts, out = [], []
+    for w in range(first, int((t[-1] - t[0]) // width_s) + 1):
+        s = (t >= t[0] + w * width_s) & (t < t[0] + (w + 1) * width_s)
+        if s.sum() >= 10:
+            starts.append(w * width_s)
+            out.append(((P[s] - T[s]) ** 2).mean(axis=0) / var)
+    return np.array(starts), np.array(out)
+
+
+def course_point(est, t: float, course: list) -> None:
+    """Append the estimator's elements and structure at ``t`` to ``course`` when they changed."""
+    d = est.diagnostics()
+    if not course or (d.get('elements'), d.get('structure')) != (course[-1]['elements'],
+                                                                 course[-1]['structure']):
+        course.append({'t': float(t), 'elements': d.get('elements'),
+                       'structure': d.get('structure'),
+                       'elements_scores': d.get('elements_scores'),
+                       'refits_ok': d.get('refits_ok')})
+
+
 def jsonable(x):
     """Return ``x`` with numpy values as plain ones, non-finite floats as None (json.dump)."""
     if isinstance(x, dict):

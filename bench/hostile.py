@@ -45,7 +45,6 @@ import sys
 import time
 from typing import Optional
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from attacks.bags import build_bags, run_bags  # noqa: E402
 from attacks.base import Sandbox, touched  # noqa: E402
 from attacks.files import run_files  # noqa: E402

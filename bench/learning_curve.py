@@ -26,8 +26,6 @@ import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 import numpy as np  # noqa: E402
 
 import common as C  # noqa: E402
@@ -144,7 +142,6 @@ def main(argv=None) -> int:
                         for k, v in falls.items())
             + f'.\n\n![learning curve]({C.rel(png, a.out)})\n')
     C.write_section(a.out, NAME, body)
-    C.log(f'wrote section {NAME}')
     return 0
 
 

@@ -35,8 +35,6 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 import common as C  # noqa: E402
 from certification import panda_dir  # noqa: E402,I100
 

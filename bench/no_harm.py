@@ -24,8 +24,6 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 import common as C  # noqa: E402
 
 NAME = 'no_harm'

@@ -18,11 +18,8 @@ Usage: bench/paper_experiments.py [--quick] [--out DIR] [--parts abc]
 """
 from __future__ import annotations
 
-import os
 import sys
 import time
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import numpy as np  # noqa: E402
 

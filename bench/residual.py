@@ -29,8 +29,6 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 import common as C  # noqa: E402
 from certification import _extra, panda_dir  # noqa: E402,I100,I201
 
@@ -196,20 +194,7 @@ def report(a, P, A, wall, path) -> str:
 
 
 def main(argv=None) -> int:
-    a = C.parse_args(__doc__.strip().splitlines()[0], argv, _extra)
-    t0 = time.perf_counter()
-    path = panda_dir(a.data)
-    P = None
-    if path is None:
-        C.log(f'{NAME}: real Panda data not found: that part is skipped')
-    else:
-        P = panda_part(a, path)
-        C.log(f'{NAME}: Panda part in {time.perf_counter() - t0:.1f} s')
-    A = a320_part(a)
-    wall = time.perf_counter() - t0
-    C.write_section(a.out, NAME, report(a, P, A, wall, path))
-    C.log(f'{NAME}: wrote section in {wall:.1f} s')
-    return 0
+    return C.panda_a320_main(NAME, argv, _extra, panda_dir, panda_part, a320_part, report)
 
 
 if __name__ == '__main__':

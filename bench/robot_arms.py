@@ -30,13 +30,10 @@ Usage: bench/robot_arms.py [--quick] [--out DIR]
 """
 from __future__ import annotations
 
-import os
 import shutil
 import sys
 import tempfile
 import time
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import numpy as np  # noqa: E402
 

@@ -47,8 +47,6 @@ from typing import Optional
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 import common as C  # noqa: E402
 
 NAME = 'robot_family'

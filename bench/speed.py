@@ -32,8 +32,6 @@ import time
 for _v in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     _os.environ.setdefault(_v, '1')
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 import numpy as np  # noqa: E402
 
 import common as C  # noqa: E402

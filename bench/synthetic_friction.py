@@ -21,11 +21,8 @@ Usage: bench/synthetic_friction.py [--quick] [--out DIR]
 """
 from __future__ import annotations
 
-import os
 import sys
 import time
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import numpy as np  # noqa: E402
 

@@ -26,11 +26,8 @@ Seeds 0..SEEDS-1 draw the joints; ``--quick``: one seed, a shorter run (steady 4
 """
 from __future__ import annotations
 
-import os
 import sys
 import time
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import numpy as np  # noqa: E402
 
