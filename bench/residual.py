@@ -113,7 +113,11 @@ def panda_part(a, path):
         f = hist.fit(*cand)
         p = f.friction_mean().force(qd[te]) + f.correction()(q[te])
         rows.append((cand, sel.scores.get(cand, float('nan')), _nmse(p, ref), _nmse(p, lp)))
-    out['candidates'], out['selected'] = rows, (sel.family, sel.offsets, sel.conservative)
+    # offsets may be chosen joint by joint ((N,) bools): a candidate carries one bool for all
+    offs = np.atleast_1d(np.asarray(sel.offsets, bool))
+    out['candidates'], out['selected'] = rows, (sel.family, bool(offs.any()), sel.conservative)
+    some = offs.size > 1 and offs.any()
+    out['offset_joints'] = [int(j) for j in np.flatnonzero(offs)] if some else None
     return out
 
 
@@ -174,7 +178,9 @@ def report(a, P, A, wall, path) -> str:
                   f' of {20000 if a.quick else 100000} random velocities each.', '',
                   'Every fixed structure of the long history (the parametric part only, no '
                   'GP), with the cross-validation score the selection used (lower is better); '
-                  f'**selected: {r["selected"]}**:', '']
+                  f'**selected: {r["selected"]}**' +
+                  ('' if r.get('offset_joints') is None else
+                   f' (offsets on joints {r["offset_joints"]})') + ':', '']
         crow = []
         for cand, score, raw, lpv in sorted(r['candidates'], key=lambda x: x[2].mean()):
             mark = ' **(selected)**' if cand == r['selected'] else ''
