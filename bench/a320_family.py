@@ -39,7 +39,6 @@ dgp_ros). ``--quick``: the first 2 flights. ``--simulate-only``: fill the cache,
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -47,8 +46,7 @@ import sys
 import time
 import traceback
 
-from family_io import add_options, course_point, fmt, nmse, parse_set, per_out, tag_and_where, \
-    windows, write
+from family_io import course_point, fmt, nmse, parse, parser, per_out, windows, write
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -291,8 +289,7 @@ def report(results: list, tag: str, where: str, quick: bool, wall: float) -> str
 
 def main(argv=None) -> int:
     global KEEP_STALLS, SEED_BASE
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
-    ap.add_argument('--quick', action='store_true', help='the first 2 flights')
+    ap = parser(__doc__, 'a320_family', 'the first 2 flights')
     ap.add_argument('--flights', default='', help='comma-separated indices (default: all)')
     ap.add_argument('--simulate-only', action='store_true', help='fill the cache only')
     ap.add_argument('--keep-stalls', action='store_true',
@@ -301,15 +298,12 @@ def main(argv=None) -> int:
     ap.add_argument('--seed-base', type=int, default=SEED_BASE,
                     help=f"the flights' seed (default {SEED_BASE}; another: flights never "
                          'developed on, their own section)')
-    add_options(ap, 'a320_family')
-    a = ap.parse_args(argv)
+    a, tag, where = parse(ap, argv, PARAMS)
     KEEP_STALLS = a.keep_stalls
     new = a.seed_base != SEED_BASE
     SEED_BASE = a.seed_base
-    parse_set(a.set, PARAMS)
     idx = ([int(x) for x in a.flights.split(',')] if a.flights else
            list(range(2 if a.quick else FLIGHTS)))
-    tag, where = tag_and_where(a.tag, PARAMS)
     results = []
     t0 = time.perf_counter()
     for i in idx:

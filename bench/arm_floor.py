@@ -362,8 +362,7 @@ def _target_rows(checks: list) -> list:
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     a = C.parse_args(__doc__.split('\n\n')[0], argv, _extra)
-    os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    C.localhost_only()
     durations = [float(x) for x in a.durations.split(',') if x]
     if a.quick:
         durations, a.repeat = [4.0], 1

@@ -172,10 +172,7 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
     """Run one scenario; returns its raw results."""
     d = os.path.join(work, sc.name + f'_{random.randint(0, 1 << 30)}')
     os.makedirs(d)
-    env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_DOMAIN_ID=str(random.randint(150, 230)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', OPENBLAS_NUM_THREADS='1',
-               PYTHONPATH=C.REPO)
-    env.pop('ROS_LOCALHOST_ONLY', None)
+    env = C.dds_env(**C.CHILD_ENV)
     env.pop('DGP_EXECUTOR', None)
     # the estimator runs the scenario's code and executor; the other processes this tree's
     est_env = dict(env, PYTHONPATH=sc.tree or C.REPO)
@@ -187,10 +184,8 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
     procs = []
 
     def start(name, args, log):
-        pr = subprocess.Popen([py, PROCS] + args,
-                              env=est_env if name in ('estimator', 'relay') else env,
-                              stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                              cwd=d)
+        pr = C.start([py, PROCS] + args, log, est_env if name in ('estimator', 'relay') else env,
+                     d)
         procs.append((name, pr))
         return pr
 
@@ -263,26 +258,10 @@ def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:
         # listener and prober first: their last probes must not go to an estimator that is
         # exiting
         for pr in (lis, prober):
-            if pr is not None and pr.poll() is None:
-                pr.send_signal(signal.SIGTERM)
-                try:
-                    pr.wait(30)
-                except subprocess.TimeoutExpired:
-                    pr.kill()
-        est.send_signal(signal.SIGINT)
-        try:
-            result['est_rc'] = est.wait(60)
-        except subprocess.TimeoutExpired:
-            est.kill()
-            result['est_rc'] = est.wait()
+            C.stop(pr, signal.SIGTERM, 30)
+        result['est_rc'] = C.stop(est, signal.SIGINT, 60)
         for name, pr in procs:
-            if pr.poll() is None:
-                pr.send_signal(signal.SIGTERM if name != 'hog' else signal.SIGKILL)
-        for name, pr in procs:
-            try:
-                pr.wait(30)
-            except subprocess.TimeoutExpired:
-                pr.kill()
+            C.stop(pr, signal.SIGTERM if name != 'hog' else signal.SIGKILL, 30)
         est_log.close()
     result['player'] = json.load(open(f('player.json')))
     L = np.load(f('listener.npz'), allow_pickle=False)
@@ -379,8 +358,7 @@ def heldout(r: dict, d: dict, k: int, urdf: str, names: List[str]) -> dict:
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     a = C.parse_args(__doc__.split('\n\n')[0], argv, _extra)
-    os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')     # the killer's node too
-    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    C.localhost_only()                                              # the killer's node too
     if a.quick:
         a.duration = min(a.duration, 4.0)
     names = list(ARM_JOINTS['panda'])

@@ -19,6 +19,8 @@ import datetime as _dt
 import fcntl
 import os
 import platform
+import random
+import signal
 import subprocess
 import sys
 import time
@@ -39,6 +41,47 @@ DOC_HEADER = ('# Benchmarks\n\n'
               'because the machine is shared and absolute timings are noisy.\n')
 
 _T0 = time.perf_counter()
+
+
+# ----------------------------------------------------------------------------- child processes
+CHILD_ENV = {'PYTHONUNBUFFERED': '1', 'OPENBLAS_NUM_THREADS': '1', 'PYTHONPATH': REPO}
+
+
+def dds_env(lo: int = 150, hi: int = 230, **extra) -> dict:
+    """Child processes' os.environ: a random ROS_DOMAIN_ID in [lo, hi], localhost DDS, extra."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(lo, hi)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', **extra)
+    env.pop('ROS_LOCALHOST_ONLY', None)
+    return env
+
+
+def localhost_only() -> None:
+    """Make this process's own nodes discover on localhost only."""
+    os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+
+
+def start(cmd, log, env, cwd=None) -> subprocess.Popen:
+    """Start cmd in a session of its own, stdout and stderr to log."""
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                            start_new_session=True, cwd=cwd)
+
+
+def stop(p, sig=signal.SIGINT, wait: float = 20.0, group: bool = False) -> Optional[int]:
+    """Sig to p (its session with group) if it runs, wait, then SIGKILL; its return code."""
+    if p is None:
+        return None
+    kill = (lambda s: os.killpg(p.pid, s)) if group else p.send_signal
+    try:
+        if p.poll() is None:
+            kill(sig)
+        return p.wait(timeout=wait)
+    except (ProcessLookupError, subprocess.TimeoutExpired):
+        try:
+            kill(signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        return p.wait(timeout=10)
 
 
 # ----------------------------------------------------------------------------- CLI / output

@@ -16,19 +16,24 @@ from typing import Dict, List
 CLK = os.sysconf('SC_CLK_TCK')
 
 
+def proc_stat(path: str):
+    """(command name, ppid, user + system CPU seconds) of a /proc stat file; None once gone."""
+    try:
+        with open(path) as f:
+            s = f.read()
+    except OSError:
+        return None
+    rest = s[s.rfind(')') + 2:].split()
+    return s[s.find('(') + 1:s.rfind(')')], int(rest[1]), (int(rest[11]) + int(rest[12])) / CLK
+
+
 def proc_table():
     """{pid: (ppid, cpu seconds)} of every process now."""
     out = {}
     for d in os.listdir('/proc'):
-        if not d.isdigit():
-            continue
-        try:
-            with open(f'/proc/{d}/stat') as f:
-                s = f.read()
-        except OSError:
-            continue
-        rest = s[s.rfind(')') + 2:].split()
-        out[int(d)] = (int(rest[1]), (int(rest[11]) + int(rest[12])) / CLK)
+        st = proc_stat(f'/proc/{d}/stat') if d.isdigit() else None
+        if st:
+            out[int(d)] = st[1:]
     return out
 
 

@@ -45,14 +45,12 @@ dgp_ros). ``--quick``: 2 systems (2 and 3 axes), 40 s streams, last 10 s scored.
 """
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
 import traceback
 
-from family_io import add_options, course_point, fmt, nmse, parse_set, per_out, tag_and_where, \
-    windows, write
+from family_io import course_point, fmt, nmse, parse, parser, per_out, windows, write
 import numpy as np
 
 RATE_HZ = 100.0
@@ -277,16 +275,12 @@ def report(results: list, tag: str, where: str, quick: bool, wall: float,
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
-    ap.add_argument('--quick', action='store_true')
+    ap = parser(__doc__, 'dgp_family')
     ap.add_argument('--systems', default='', help='comma-separated names (default: all)')
     ap.add_argument('--seed-offset', type=int, default=0,
                     help="added to every system's seed: systems of the same kind never "
                          'developed on (e.g. 100)')
-    add_options(ap, 'dgp_family')
-    a = ap.parse_args(argv)
-    parse_set(a.set, PARAMS)
-    tag, where = tag_and_where(a.tag, PARAMS)
+    a, tag, where = parse(ap, argv, PARAMS)
     chosen = a.systems.split(',') if a.systems else (QUICK if a.quick else
                                                      [s[0] for s in SYSTEMS])
     duration, last = (40.0, 10.0) if a.quick else (DURATION_S, LAST_S)

@@ -8,6 +8,7 @@ write the section of docs/BENCHMARKS.md). Each writes ``OUT/<name>_<tag>.md`` an
 """
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -88,8 +89,10 @@ def jsonable(x):
     return x
 
 
-def add_options(ap, section: str) -> None:
-    """Add ``--out``, ``--section``, ``--tag`` and ``--set`` to an ArgumentParser."""
+def parser(doc: str, section: str, quick_help: str = 'a smoke run'):
+    """Return an ArgumentParser with --quick, --out, --section, --tag and --set."""
+    ap = argparse.ArgumentParser(description=doc.split('\n')[1])
+    ap.add_argument('--quick', action='store_true', help=quick_help)
     ap.add_argument('--out', default=os.path.join(REPO, 'out', 'families'),
                     help='where the .md and .json go (default: out/families)')
     ap.add_argument('--section', action='store_true',
@@ -98,16 +101,19 @@ def add_options(ap, section: str) -> None:
     ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE',
                     help='an estimator parameter besides the defaults (diagnosis only; the '
                          'value is read as JSON, else as text), e.g. --set elements=all')
+    return ap
 
 
-def parse_set(specs, params: dict) -> None:
-    """Put every ``--set NAME=VALUE`` into ``params`` (the value read as JSON, else as text)."""
-    for kv in specs:
+def parse(ap, argv, params: dict):
+    """Parse argv, put every ``--set NAME=VALUE`` into params; return (options, tag, where)."""
+    a = ap.parse_args(argv)
+    for kv in a.set:
         k, v = kv.split('=', 1)
         try:
             params[k] = json.loads(v)
         except ValueError:
             params[k] = v
+    return (a,) + tag_and_where(a.tag, params)
 
 
 def _commit_of(module_file: str) -> str:

@@ -25,10 +25,8 @@ Usage: bench/learning_switch.py [--quick] [--out DIR] [--data DIR] [--learn S] [
 from __future__ import annotations
 
 import os
-import random
 import shutil
 import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -116,25 +114,6 @@ class Watch:
         self.ctx.try_shutdown()
 
 
-def _start(cmd, log, env):
-    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
-                            start_new_session=True)
-
-
-def _stop(p, sig=signal.SIGINT, wait=20.0):
-    if p is None or p.poll() is not None:
-        return
-    try:
-        os.killpg(p.pid, sig)
-        p.wait(timeout=wait)
-    except (ProcessLookupError, subprocess.TimeoutExpired):
-        try:
-            os.killpg(p.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        p.wait(timeout=10)
-
-
 def _estimator(model_path, extra=()):
     return [os.path.join(BIN, 'estimator'), '--ros-args', '-r', 'generalized_state:=/joint_states',
             '-p', f'joints:={NAMES!r}'.replace("'", '"'), '-p', f'model_path:={model_path}',
@@ -195,9 +174,9 @@ def run_parameter(a, data, work, env, log) -> dict:
     est = pl = li = None
     r = {'case': 'parameter (ros2 param set learning false / true)'}
     try:
-        est = _start(_estimator(model_path), log, env)
-        li = _start(_listener(work, 'p'), log, env)
-        pl = _start(_player(data, total, work, 'p'), log, env)
+        est = C.start(_estimator(model_path), log, env)
+        li = C.start(_listener(work, 'p'), log, env)
+        pl = C.start(_player(data, total, work, 'p'), log, env)
         if not w.spin(120.0, lambda: w.last('trained') == 'True', [est]):
             raise RuntimeError('the estimator never trained')
         w.spin(a.learn, procs=[est, pl])
@@ -233,9 +212,9 @@ def run_parameter(a, data, work, env, log) -> dict:
                  added_after_on=int(again['samples_added']) - int(end['samples_added']),
                  on_s=again['_t'] - t_on)
     finally:
-        _stop(pl, signal.SIGTERM)
-        _stop(li, wait=180.0)       # it deserializes every answer before it writes
-        _stop(est)
+        C.stop(pl, signal.SIGTERM, group=True)
+        C.stop(li, wait=180.0, group=True)       # it deserializes every answer before it writes
+        C.stop(est, group=True)
         w.close()
     r['scored'] = _score_answers(_answers(work, 'p'), *window, frozen_path)
     r['model_path'] = model_path
@@ -248,9 +227,9 @@ def run_command_line(a, data, work, env, log, model_path) -> dict:
     est = pl = li = None
     r = {'case': 'command line (--ros-args -p learning:=false -p model_path:=...)'}
     try:
-        est = _start(_estimator(model_path, ['-p', 'learning:=false']), log, env)
-        li = _start(_listener(work, 'c'), log, env)
-        pl = _start(_player(data, a.off + 150.0, work, 'c'), log, env)
+        est = C.start(_estimator(model_path, ['-p', 'learning:=false']), log, env)
+        li = C.start(_listener(work, 'c'), log, env)
+        pl = C.start(_player(data, a.off + 150.0, work, 'c'), log, env)
         if not w.spin(120.0, lambda: w.last('trained') == 'True' and
                       int(w.last('messages_received', '0')) > 0, [est]):
             raise RuntimeError('the frozen estimator never answered')
@@ -266,9 +245,9 @@ def run_command_line(a, data, work, env, log, model_path) -> dict:
                  load_error=end.get('load_error', ''), message=end['_message'],
                  accepted_off=int(end['messages_accepted']))
     finally:
-        _stop(pl, signal.SIGTERM)
-        _stop(li, wait=180.0)       # it deserializes every answer before it writes
-        _stop(est)
+        C.stop(pl, signal.SIGTERM, group=True)
+        C.stop(li, wait=180.0, group=True)       # it deserializes every answer before it writes
+        C.stop(est, group=True)
         w.close()
     r['scored'] = _score_answers(_answers(work, 'c'), first['_wall'] + 0.5, t_end, model_path)
     return r
@@ -314,9 +293,8 @@ def main(argv=None) -> int:
         return 0
     if a.quick:
         a.learn, a.off, a.on = 8.0, 4.0, 3.0
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               ROS_DOMAIN_ID=os.environ.get('ROS_DOMAIN_ID') or str(random.randint(120, 200)))
-    env.pop('ROS_LOCALHOST_ONLY', None)
+    env = C.dds_env(120, 200)
+    env['ROS_DOMAIN_ID'] = os.environ.get('ROS_DOMAIN_ID') or env['ROS_DOMAIN_ID']
     os.environ.update({k: env[k] for k in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_DOMAIN_ID')})
     t0 = time.perf_counter()
     runs = []

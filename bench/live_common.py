@@ -11,6 +11,8 @@ import os
 import signal
 import threading
 
+from cpu_watch import proc_stat
+
 __all__ = ['TOPIC_IN', 'TOPIC_OUT', 'FINGER', 'stop_event', 'thread_cpu', 'write_json',
            'panda_messages']
 
@@ -30,18 +32,11 @@ def stop_event():
 def thread_cpu() -> dict:
     """CPU seconds of each thread of this process so far, by thread name (summed per name)."""
     out: dict = {}
-    clk = os.sysconf('SC_CLK_TCK')
     for tid in os.listdir('/proc/self/task'):
-        try:
-            with open(f'/proc/self/task/{tid}/stat') as f:
-                s = f.read()
-        except OSError:
-            continue
-        name = s[s.find('(') + 1:s.rfind(')')]
-        if int(tid) == os.getpid():
-            name = 'main'
-        rest = s[s.rfind(')') + 2:].split()
-        out[name] = out.get(name, 0.0) + (int(rest[11]) + int(rest[12])) / clk
+        st = proc_stat(f'/proc/self/task/{tid}/stat')
+        if st:
+            name = 'main' if int(tid) == os.getpid() else st[0]
+            out[name] = out.get(name, 0.0) + st[2]
     return out
 
 

@@ -172,18 +172,8 @@ def _calibrate(prof: _Profiler) -> None:
 
 
 def _thread_cpu(tids) -> float:
-    import os
-    clk = os.sysconf('SC_CLK_TCK')
-    total = 0.0
-    for tid in tids or ():
-        try:
-            with open(f'/proc/self/task/{tid}/stat') as f:
-                s = f.read()
-        except OSError:
-            continue
-        rest = s[s.rfind(')') + 2:].split()
-        total += (int(rest[11]) + int(rest[12])) / clk
-    return total
+    from cpu_watch import proc_stat
+    return sum(st[2] for st in (proc_stat(f'/proc/self/task/{t}/stat') for t in tids or ()) if st)
 
 
 def report(main_thread_s: float, received: int, threads: Dict[str, float]) -> dict:

@@ -28,9 +28,7 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
-import subprocess
 import sys
 import time
 
@@ -230,10 +228,7 @@ def _anon_parts(pid: int) -> dict:
 
 def run(a, work: str) -> dict:
     from dgp_ros.dynamics import ARM_JOINTS, example_robot_urdf
-    env = dict(os.environ, PYTHONUNBUFFERED='1', ROS_DOMAIN_ID=str(random.randint(150, 230)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', OPENBLAS_NUM_THREADS='1',
-               PYTHONPATH=C.REPO)
-    env.pop('ROS_LOCALHOST_ONLY', None)
+    env = C.dds_env(**C.CHILD_ENV)
     f = lambda n: os.path.join(work, n)  # noqa: E731
     est_env = dict(env)
     if a.tracemalloc:
@@ -247,19 +242,13 @@ def run(a, work: str) -> dict:
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     procs = {}
     logs = [open(f(n + '.log'), 'w') for n in ('estimator', 'listener', 'player')]
-    procs['node'] = subprocess.Popen([sys.executable, '-m', 'dgp_ros.nodes.estimator'] + ros,
-                                     env=est_env, stdout=logs[0], stderr=subprocess.STDOUT,
-                                     start_new_session=True, cwd=work)
-    procs['listener'] = subprocess.Popen(me + ['--role', 'listener', '--file', f('lis.json'),
-                                               '--sample-s', str(a.sample_s)],
-                                         env=env, stdout=logs[1], stderr=subprocess.STDOUT,
-                                         start_new_session=True, cwd=work)
+    procs['node'] = C.start([sys.executable, '-m', 'dgp_ros.nodes.estimator'] + ros, logs[0],
+                            est_env, work)
+    procs['listener'] = C.start(me + ['--role', 'listener', '--file', f('lis.json'),
+                                      '--sample-s', str(a.sample_s)], logs[1], env, work)
     time.sleep(2.0)
-    procs['player'] = subprocess.Popen(me + ['--role', 'player', '--file', f('player.json'),
-                                             '--duration', str(a.duration),
-                                             '--rate', str(a.rate)],
-                                       env=env, stdout=logs[2], stderr=subprocess.STDOUT,
-                                       start_new_session=True, cwd=work)
+    procs['player'] = C.start(me + ['--role', 'player', '--file', f('player.json'), '--duration',
+                                    str(a.duration), '--rate', str(a.rate)], logs[2], env, work)
     samples, t0 = [], time.monotonic()
     try:
         while procs['player'].poll() is None:
@@ -282,17 +271,9 @@ def run(a, work: str) -> dict:
                 time.sleep(0.5)
         time.sleep(2.0)
     finally:
-        if procs['player'].poll() is None:          # interrupted: the stream stops first
-            procs['player'].send_signal(signal.SIGTERM)
-        procs['listener'].send_signal(signal.SIGTERM)
-        procs['node'].send_signal(signal.SIGINT)
-        out = {}
-        for k, p in procs.items():
-            try:
-                out[k + '_rc'] = p.wait(60)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                out[k + '_rc'] = p.wait()
+        # the stream first (if interrupted), the node last
+        out = {k + '_rc': C.stop(procs[k], sig, 60) for k, sig in (
+            ('player', signal.SIGTERM), ('listener', signal.SIGTERM), ('node', signal.SIGINT))}
         for lg in logs:
             lg.close()
     log = open(f('estimator.log')).read()

@@ -160,22 +160,19 @@ def bench_core(a, Q, T, ns):
                     m.predict(q1, return_var=True)
             r[(kind, 'single_node')] = C.timeit(node_path, repeat=7, min_time=0.05)
             # one-sample update, growing (no window): fresh model, a few consecutive updates
-            mg = fit()
             k_up = 5 if n >= 2000 else 10
-            ts = []
-            for i in range(k_up):
-                t0 = time.perf_counter()
-                mg.update(Q[n + i], T[n + i])
-                ts.append(time.perf_counter() - t0)
-            r[(kind, 'update')] = float(np.median(ts))
+
+            def updates(mu):
+                ts = []
+                for i in range(k_up):
+                    t0 = time.perf_counter()
+                    mu.update(Q[n + i], T[n + i])
+                    ts.append(time.perf_counter() - t0)
+                return float(np.median(ts))
+            r[(kind, 'update')] = updates(fit())
             # windowed update at steady state (the node's buffer): drops the oldest sample
-            mw = make_model(kind, hyperparams=hp, window=n).fit(Qn, Tn, optimize=False)
-            ts = []
-            for i in range(k_up):
-                t0 = time.perf_counter()
-                mw.update(Q[n + i], T[n + i])
-                ts.append(time.perf_counter() - t0)
-            r[(kind, 'update_window')] = float(np.median(ts))
+            r[(kind, 'update_window')] = updates(
+                make_model(kind, hyperparams=hp, window=n).fit(Qn, Tn, optimize=False))
             if kind == 'ard':
                 ard = m
         # floor: N x cho_factor of an n x n SPD matrix
