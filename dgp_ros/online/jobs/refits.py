@@ -16,7 +16,9 @@ hyper-parameters on the window as it is now, and swapped in under the lock, whic
 to read the window and for the swap. A re-proven model is caught up with the samples appended to
 the served one meanwhile. An unproven candidate serves with every answer projected
 (``worker``); re-proofs after failed ones wait longer (``proof_gap``). The learning switch's
-freeze job runs here too (``switch``: ``set_freezer``).
+freeze job runs here too: ``start`` and ``run`` are passed the learner's parts (``parts.Parts``)
+and hand a freeze job, or the freeze wanted after a job, to ``parts.switch``; the two parts
+keep no reference to each other.
 """
 from __future__ import annotations
 
@@ -75,8 +77,6 @@ class Refits:
         self._health, self._factory, self._save = health, factory, save
         self._generation = int(generation)
         self._thread: Optional[threading.Thread] = None
-        self._freeze: Optional[Callable] = None      # runs a 'freeze' job (``switch``)
-        self._freeze_due: Callable = lambda: None   # a freeze job wanted after a job, or None
         self._hyper: Optional[dict] = None   # warm start of the next fit (hyperparams_)
         self._opt_n = 0                   # samples the current hyper-parameters were learned on
         self._hyper_box = None            # their velocity box (``note_novelty``)
@@ -91,10 +91,6 @@ class Refits:
         # (seq, qd, tau) added while a refit runs; only the newest buffer_size can survive the
         # model's window, so older ones are dropped here
         self._pending: deque = deque(maxlen=settings().buffer_size)
-
-    def set_freezer(self, run: Callable, due: Callable) -> None:
-        """Take the switch's freeze: ``run(job)`` runs one, ``due()`` returns one or None."""
-        self._freeze, self._freeze_due = run, due
 
     # ------------------------------------------------------------------ state
     @property
@@ -307,8 +303,12 @@ class Refits:
         return self._fit_job(last_t), ''
 
     # ------------------------------------------------------------------ running
-    def start(self, job: RefitJob) -> Tuple[bool, str]:
-        """Run ``job``: in the job thread (``async``), else in line; (ok, message)."""
+    def start(self, job: RefitJob, parts) -> Tuple[bool, str]:
+        """
+        Run ``job``: in the job thread (``async``), else in line; (ok, message).
+
+        parts : the learner's parts (``parts.Parts``), passed on to ``run``.
+        """
         what = (f'{job.kind} started' if job.kind != 'fit' else
                 f'refit started on {job.Q.shape[0]} samples '
                 f'({"optimizing" if job.optimize else "fixed"} hyper-parameters)')
@@ -317,20 +317,25 @@ class Refits:
                 return False, 'a refit is already running'
             self._pending.clear()
             if job.config.refit_mode == 'async':
-                self._thread = threading.Thread(target=self.run, args=(job,),
+                self._thread = threading.Thread(target=self.run, args=(job, parts),
                                                 name='dgp_refit', daemon=True)
                 self._thread.start()
                 return True, what
             self._thread = None
-        return self.run(job)
+        return self.run(job, parts)
 
-    def run(self, job: RefitJob) -> Tuple[bool, str]:
-        """Run ``job`` here; a freeze wanted meanwhile (learning switched off) follows it."""
+    def run(self, job: RefitJob, parts) -> Tuple[bool, str]:
+        """
+        Run ``job`` here; a freeze wanted meanwhile (learning switched off) follows it.
+
+        parts : the learner's parts (``parts.Parts``): a freeze is ``parts.switch``'s.
+        """
+        switch = parts.switch
         if job.kind == 'freeze':
-            return self._freeze(job)
+            return switch.freeze(job, parts)
         out = self._integrate(run_job(job, self._factory))
-        follow = self._freeze_due()     # switched off while this job ran (and discarded it)
-        return self._freeze(follow) if follow is not None else out
+        follow = switch.due_after_job(parts)    # switched off while it ran (and discarded it)
+        return switch.freeze(follow, parts) if follow is not None else out
 
     def prove_now(self, job: RefitJob) -> Tuple[bool, str]:
         """Run a re-proof job here, with no freeze after it (the freeze's own proof)."""

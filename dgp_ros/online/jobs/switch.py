@@ -46,24 +46,20 @@ class Switch:
     """
     The learning switch (module docstring).
 
-    lock : the learner's lock; settings : returns the configuration as it is now; window,
-    structure, served, rebases, refits : the parts a freeze brings up to date and proves
-    through; health : the learner's ``LearnerHealth``; save : the learner's ``save(path)``;
-    last_t : returns the newest sample's learning time.
+    It keeps no other part: the steps that read or change them (``job``, ``due_after_job``,
+    ``start``, ``freeze``, ``wait_stopped``) are passed the learner's parts (``parts.Parts``:
+    the lock, the settings, the window, structure, served model, rebases and refits a freeze
+    brings up to date and proves through, the health record). save : the learner's
+    ``save(path)``; last_t : returns the newest sample's learning time.
     """
 
     #: how long a save waits for learning to stop (s)
     STOP_WAIT_S = 60.0
 
-    def __init__(self, lock, settings: Callable, window, structure, served, rebases, refits,
-                 health, save: Callable, last_t: Callable):
-        self._lock, self._settings = lock, settings
-        self._window, self._structure, self._served = window, structure, served
-        self._rebases, self._refits = rebases, refits
-        self._health, self._save, self._last_t = health, save, last_t
+    def __init__(self, save: Callable, last_t: Callable):
+        self._save, self._last_t = save, last_t
         self._wanted = False          # switched off: the model still to be proven and saved
         self._freezing = False        # its job runs
-        refits.set_freezer(self.freeze, self.due_after_job)
 
     def state(self, learning: bool) -> str:
         """Return 'on', 'stopping' (the model being proven and saved) or 'off'."""
@@ -84,7 +80,7 @@ class Switch:
         """Learning was switched on again (under the lock): nothing to freeze."""
         self._wanted = False
 
-    def wait_stopped(self, timeout: float = STOP_WAIT_S) -> bool:
+    def wait_stopped(self, parts, timeout: float = STOP_WAIT_S) -> bool:
         """
         Wait (bounded) while learning is stopping; True when it is not (any more).
 
@@ -93,74 +89,74 @@ class Switch:
         ``refit_mode='sync'``, nothing else runs while it does).
         """
         end = time.monotonic() + timeout
-        while self.state(self._settings().learning) == 'stopping' and time.monotonic() < end:
-            t = self._refits.thread
+        while self.state(parts.settings().learning) == 'stopping' and time.monotonic() < end:
+            t = parts.refits.thread
             if t is None or t is threading.current_thread():
                 break                   # in line, or the freeze's own save
             if t.is_alive():
                 t.join(min(0.05, max(0.0, end - time.monotonic())))
             else:
                 time.sleep(0.005)
-        return self.state(self._settings().learning) != 'stopping'
+        return self.state(parts.settings().learning) != 'stopping'
 
-    def _job(self) -> RefitJob:
-        return RefitJob('freeze', dataclasses.replace(self._settings()), self._window.seq,
-                        self._refits.generation, self._last_t())
+    def _job(self, parts) -> RefitJob:
+        return RefitJob('freeze', dataclasses.replace(parts.settings()), parts.window.seq,
+                        parts.refits.generation, self._last_t())
 
-    def job(self) -> Optional[RefitJob]:
+    def job(self, parts) -> Optional[RefitJob]:
         """Return the freeze job when one is wanted and no job runs (else None)."""
-        with self._lock:
-            if not self._wanted or self._freezing or self._refits.running():
+        with parts.lock:
+            if not self._wanted or self._freezing or parts.refits.running():
                 return None
-            return self._job()
+            return self._job(parts)
 
-    def due_after_job(self) -> Optional[RefitJob]:
+    def due_after_job(self, parts) -> Optional[RefitJob]:
         """Return the freeze job wanted after a job that ran meanwhile (in its thread), or None."""
-        with self._lock:
-            return self._job() if self._wanted and not self._freezing else None
+        with parts.lock:
+            return self._job(parts) if self._wanted and not self._freezing else None
 
-    def start(self) -> None:
+    def start(self, parts) -> None:
         """Start the freeze job if one is wanted (outside the lock)."""
-        job = self.job()
+        job = self.job(parts)
         if job is not None:
-            self._refits.start(job)
+            parts.refits.start(job, parts)
 
-    def freeze(self, job: RefitJob) -> Tuple[bool, str]:
+    def freeze(self, job: RefitJob, parts) -> Tuple[bool, str]:
         """
         Do steps 2 and 3 of the module docstring (step 1 was the switch).
 
         The model is brought up to what was learned (appends, else a rebase with a fresh
         structure), proven with the full proof, and saved to ``model_path``.
         """
-        lock, served, win = self._lock, self._served, self._window
+        lock, served, win, refits = parts.lock, parts.served, parts.window, parts.refits
         with lock:
-            if not self._wanted or job.generation != self._refits.generation:
+            if not self._wanted or job.generation != refits.generation:
                 return False, 'nothing to freeze'
             self._wanted, self._freezing = False, True
         try:
             with lock:
                 if served.model is not None and served.unheld(win.seq):
-                    served.catch_up(win, self._health, self._settings().buffer_size)
+                    served.catch_up(win, parts.health, parts.settings().buffer_size)
                 behind = served.model is not None and (served.unheld(win.seq) or
-                                                       self._structure.history_grew())
+                                                       parts.structure.history_grew())
                 if behind:
-                    self._structure.reselect_soon()
+                    parts.structure.reselect_soon()
             if behind:
-                self._rebases.run(freeze=True)     # what save does before it writes
+                parts.rebases.run(freeze=True)     # what save does before it writes
             with lock:
-                if served.model is None or job.generation != self._refits.generation:
+                if served.model is None or job.generation != refits.generation:
                     return False, 'no model to freeze'
-                proof = self._refits.recertify_job(self._last_t(), job.config, full=True)
-            ok, what = self._refits.prove_now(proof)
+                proof = refits.recertify_job(self._last_t(), job.config, full=True)
+            ok, what = refits.prove_now(proof)
             path = job.config.model_path
             with lock:
-                current = job.generation == self._refits.generation and served.model is not None
+                current = job.generation == refits.generation and served.model is not None
             if current and path:
                 try:
                     what = f'{what}; saved to {self._save(path)}'
                 except Exception as exc:        # noqa: BLE001 - the model serves all the same
                     with lock:
-                        self._health.last_refit_error = f'frozen, but saving failed: {exc}'
+                        parts.health.last_refit_error = f'frozen, but saving failed: {exc}'
             return ok, what
         finally:
             with lock:

@@ -68,7 +68,7 @@ def save(parts, path: Optional[str] = None) -> str:
     if not path:
         raise ValueError('no path given and model_path is not set')
     check_model_path(path)
-    parts.switch.wait_stopped()
+    parts.switch.wait_stopped(parts)
     served, structure, lock = parts.served, parts.structure, parts.lock
     with lock:
         if served.model is None:

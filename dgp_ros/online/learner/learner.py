@@ -107,8 +107,7 @@ class Learner:
                              self._factory, self.save, 1 if old is None else old.generation)
         self.rebases = Rebases(lock, self._settings, self.window, self.structure, self.served,
                                self.refits, h, self._factory)
-        self.switch = Switch(lock, self._settings, self.window, self.structure, self.served,
-                             self.rebases, self.refits, h, self.save, lambda: self._last_t)
+        self.switch = Switch(self.save, lambda: self._last_t)     # handed the parts in each call
         self.snapshots = Snapshots()
         self._parts = Parts(lock, self._settings, self.window, self.structure, self.grounds,
                             self.served, self.rebases, self.refits, self.switch, h)
@@ -241,7 +240,7 @@ class Learner:
             job = self._next_job(t)
             rebase = job is None and self.rebases.due()
         if job is not None:
-            self.refits.start(job)
+            self.refits.start(job, self.parts())
         elif rebase:
             self.rebases.soon()
         return added, residuals
@@ -265,14 +264,14 @@ class Learner:
             job = self._next_job(self._last_t, idle)
             rebase = job is None and self.rebases.due()
         if job is not None:
-            self.refits.start(job)
+            self.refits.start(job, self.parts())
         elif rebase:
             self.rebases.soon()
 
     def _next_job(self, stamp, idle: bool = False):
         """Return the job due now (under the lock): the freeze with learning off, else a refit."""
         if not self.config.learning:
-            return self.switch.job()            # serve only: nothing else (``switch``)
+            return self.switch.job(self._parts)     # serve only: nothing else (``switch``)
         return self.refits.next_job(stamp, self._last_t, idle)
 
     def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q,
@@ -385,7 +384,7 @@ class Learner:
             job, why = self.refits.request(self._last_t)
         if job is None:
             return False, why
-        return self.refits.start(job)
+        return self.refits.start(job, self.parts())
 
     def wait_for_refit(self, timeout: Optional[float] = None) -> bool:
         """Block until no refit is running; True if none is running at return."""
@@ -428,7 +427,7 @@ class Learner:
             return what
         if on:
             return f'{what}; learning on'
-        self.switch.start()
+        self.switch.start(self.parts())
         with self._lock:
             frozen = self.served.model is not None
         note = ('learning off: the model is proven and saved (learning: stopping, then off)'

@@ -1,9 +1,10 @@
 """
 The learner's parts as they are at a call: what the learner's steps are passed (no rclpy).
 
-A step that reads or changes several parts (``files.save``, ``files.adopt``, ``Snapshots.take``)
-is handed them in each call instead of keeping references to them, so no part holds another
-and a reset's new parts reach every step at once.
+A step that reads or changes several parts (``files.save``, ``files.adopt``, ``Snapshots.take``,
+``Refits.start`` and ``run``, the steps of ``Switch``) is handed them in each call instead of
+keeping references to them, so a reset's new parts reach every step at once; ``Refits`` and
+``Switch`` keep none of each other (a freeze job goes from ``Refits.run`` to ``parts.switch``).
 """
 from __future__ import annotations
 
