@@ -50,7 +50,8 @@ TOPICS = {
     '/dgp_estimator/refit': "refit now (the learner's answer, or after 20 ms that the request "
                             'is queued to a busy learner)',
     '/dgp_estimator/reset': 'forget the model, the buffer and the counters',
-    '/dgp_estimator/save_model': 'save the model to `model_path`',
+    '/dgp_estimator/save_model': 'save the model to `model_path`, once it has learned every '
+                                 'sample sent before the call',
 }
 
 #: keys the node adds once messages arrived over DDS (the stamp-to-answer age, the CPU a

@@ -399,6 +399,10 @@ class EstimatorNode(Node):
             if self.estimator.config.model_path and self.estimator.trained:
                 path = self.estimator.save()
                 self.get_logger().info(f'model saved to {path}')
+            elif self.estimator.config.model_path:
+                self.get_logger().warning(
+                    f'no model saved to {self.estimator.config.model_path}: none was trained '
+                    'yet (the first fit had not finished; a loaded computer makes it slower)')
         except Exception as exc:  # noqa: BLE001 - shutdown must not raise
             self.get_logger().error(f'could not save model: {exc}')
         finally:

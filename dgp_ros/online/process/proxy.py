@@ -364,7 +364,11 @@ class LearnerProcess:
     def save(self, path: Optional[str] = None, timeout: Optional[float] = None) -> str:
         """Save in the child; if it cannot (dead, no answer), save the last snapshot here."""
         path = path or self.config.model_path
-        ok, what = self._call('save', path, timeout=timeout)
+        ring = self._ring           # the saved model learns every row sent before the save
+        if ring is not None:
+            ring.flush(timeout=1.0)             # the rows the learner has not seen yet
+        ok, what = self._call('save', path, None if ring is None else ring.mark(),
+                              timeout=timeout)
         if ok:
             return what
         if what.startswith(('ValueError: ', 'RuntimeError: ')):

@@ -174,6 +174,11 @@ class SampleRing:
         with self._lock:
             return int(self._hdr[0]) + len(self._backlog)
 
+    @property
+    def taken(self) -> int:
+        """Consumer: the producer index below which every row was read; cf. ``mark``."""
+        return int(self._hdr[1])
+
     def skip_to(self, index: int) -> None:
         """Consumer: never take the rows before ``index`` (a producer's ``mark``)."""
         self._skip = max(self._skip, int(index))
