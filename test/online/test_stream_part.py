@@ -146,3 +146,46 @@ def test_a_thinning_learner_still_feeds_every_sample_to_the_long_history():
         assert 'couplings through airspeed' in learner.status()['structure']
     finally:
         learner.close()
+
+
+def _verdict_after(published_of):
+    """
+    Stream 20 s of the aircraft through a part; return its verdict at the end.
+
+    The model beside it answers zero until 1 s and exactly after; ``published_of(t, weighed)``
+    is what went out for the message at t, given the model's answer weighed with the part's
+    (``StreamPart.weigh``, as the estimator publishes).
+    """
+    part = StreamPart(3)
+    t = np.arange(0.0, 20.0, 1.0 / 60.0)
+    Q, T = aircraft(t)
+    for i in range(len(t)):
+        mine = part.answer(Q[i:i + 1])
+        model = np.zeros((1, 3)) if t[i] < 1.0 else T[i:i + 1]
+        weighed = part.weigh(Q[i:i + 1], model, None)[0]
+        part.learn(t[i:i + 1], Q[i:i + 1], T[i:i + 1], model,
+                   None if mine is None else mine[0], published_of(t[i], weighed))
+    return part.verdict()
+
+
+def test_the_first_answers_of_the_part_do_not_warn_for_the_rest_of_the_run():
+    """
+    The part's first answers are not held against the answers of the last seconds.
+
+    Published while the part had just started (its skill not known yet: the model's zero went
+    out), they counted from the part's first answer on: a run whose answers had been 1000x better
+    than the part alone for 10 s said it did 5.9x worse (the demo, quiet), from its first
+    second's few answers.
+    """
+    assert _verdict_after(lambda t, weighed: weighed) == []
+
+
+def test_answers_worse_than_the_part_in_the_last_seconds_are_said():
+    rng = np.random.default_rng(0)
+    _, T = aircraft(np.arange(0.0, 20.0, 1.0 / 60.0))
+    sd = 0.1 * T.std(axis=0)
+
+    def noisy_late(t, weighed):              # 1 % of the variance: far worse than the part
+        return weighed + (rng.standard_normal(3) * sd if t > 15.0 else 0.0)
+    out = _verdict_after(noisy_late)
+    assert len(out) == 1 and 'did worse than the parametric part alone' in out[0], out

@@ -96,6 +96,7 @@ class StreamPart:
         # the last word: published answers and the part alone over VERDICT_HALF_LIFE_S
         self.v_pub, self.v_part, self.v_zero = z.copy(), z.copy(), z.copy()
         self.v_scored = 0.0
+        self.answered = 0.0             # the share of the skill's memory the part answered
         self.lag_at: Optional[float] = None         # stamp of the last lag beyond LAG_WARN_S
         self.lag_max = 0.0                          # the largest of those lags (s)
 
@@ -297,7 +298,9 @@ class StreamPart:
             ep = (t * t) if part is None else (part[i] - t) ** 2
             self.e_part = g * self.e_part + (1.0 - g) * ep
             self.scored = g * self.scored + (1.0 - g)
-            if part is not None:            # the last word: once the part answers
+            self.answered = g * self.answered + (1.0 - g) * (part is not None)
+            if part is not None and self.answered >= 0.5:   # the last word, once the part
+                # has answered for a half-life: its first answers had no skill to be weighed by
                 v = 0.5 ** (dt / VERDICT_HALF_LIFE_S)
                 self.v_zero = v * self.v_zero + (1.0 - v) * t * t
                 self.v_pub = v * self.v_pub + (1.0 - v) * (published[i] - t) ** 2
