@@ -321,3 +321,15 @@ def test_aircraft_cost_quick(tmp_path):
         assert 0 < numbers(r[1])[0] < 1e6, r           # a median in microseconds, finite
     # the replay ran to its end and said how fast
     assert re.search(r'median \*\*[0-9.]+x real time\*\* \(exit codes \[0\]', s), s
+
+
+@pytest.mark.slow
+def test_coupled_wrist_quick(tmp_path):
+    run('coupled_wrist.py', tmp_path)
+    s = section(tmp_path, 'coupled_wrist')
+    rows = table_rows(s, ('panda', '0'))
+    assert [r[2] for r in rows] == ['0.6', '0'], s
+    for r in rows:
+        model, fit = numbers(r[3]), numbers(r[4])
+        # two joints each; learned something (a model that learned nothing scores ~1)
+        assert len(model) == 2 and len(fit) == 2 and all(0 < x < 1 for x in model + fit), r

@@ -19,7 +19,8 @@ with the per-joint values of :data:`FRICTION_TABLES` (fixed per robot, magnitude
 identified friction) and an optional constant sensor bias per joint (last column). This is the
 estimator's prior family; ``friction='realistic'`` is friction outside it (direction asymmetry,
 sub-linear viscous, pose-dependent) and ``payload_kg`` a mass at the flange that the URDF does
-not have (both in ``realistic.py``).
+not have (both in ``realistic.py``); ``coupled_wrist`` a motor that drives the last two joints
+together (:func:`coupled_wrist_friction`: friction on their velocities' sum, in both torques).
 
 Trajectories: per joint a 5-harmonic Fourier series of base frequency 0.1 Hz with random
 coefficients (by seed), scaled so that the position stays inside the URDF limits with a 15 %
@@ -43,7 +44,8 @@ import numpy as np
 from .inverse import UrdfInverseDynamics
 from .realistic import payload_inverse_dynamics, PAYLOAD_MOUNT, realistic_friction
 
-__all__ = ['ARM_JOINTS', 'FRICTION_TABLES', 'SIGN_VELOCITY', 'example_robot_urdf',
+__all__ = ['ARM_JOINTS', 'FRICTION_TABLES', 'SIGN_VELOCITY', 'coupled_wrist_friction',
+           'example_robot_urdf',
            'friction_truth', 'fourier_trajectory', 'negative_power_fraction', 'simulate_arm']
 
 ARM_JOINTS = {
@@ -144,6 +146,28 @@ def friction_truth(robot: str, qd) -> np.ndarray:
     return (fc + fs * np.exp(-(v / vs) ** 2)) * np.tanh(v / SIGN_VELOCITY) + fv * v
 
 
+def coupled_wrist_friction(qd, coulomb: float) -> np.ndarray:
+    """
+    Friction of one motor driving an arm's last two joints together, as joint torques.
+
+    The motor turns at ``m = qd[-2] + qd[-1]`` (a coupled transmission of ratio one); its
+    friction ``f(m) = (c + 0.5 c exp(-(m / 0.08)^2)) tanh(m / SIGN_VELOCITY) + 0.5 c m``
+    (c = ``coulomb`` [N m]) reaches both joints: ``tau = T^T f(T qd)``, T = [0 .. 0 1 1].
+    Passive: ``qd . tau = m f(m) >= 0``, though neither joint's share is a function of its own
+    velocity.
+
+    qd : (N,) or (k, N) joint velocities [rad/s]; returns the torques [N m], shape of ``qd``.
+    """
+    v = np.asarray(qd, dtype=float)
+    m = v[..., -2] + v[..., -1]
+    c = float(coulomb)
+    f = (c + 0.5 * c * np.exp(-(m / 0.08) ** 2)) * np.tanh(m / SIGN_VELOCITY) + 0.5 * c * m
+    out = np.zeros_like(v)
+    out[..., -2] = f
+    out[..., -1] = f
+    return out
+
+
 def negative_power_fraction(qd, force) -> float:
     """Fraction of samples with ``qd . force < 0`` (rows of (k, N) arrays)."""
     return float(np.mean(np.einsum('kn,kn->k', np.atleast_2d(qd), np.atleast_2d(force)) < 0.0))
@@ -221,7 +245,8 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
                  seed: int = 0, bias: bool = True, noise_sd: float = 0.3,
                  velocity_noise_sd: float = 0.003, jitter_sd_s: float = 50e-6,
                  friction=True, t0_s: float = 0.0, base_hz: float = 0.1,
-                 harmonics: int = 5, pause_hz: float = 0.2, payload_kg: float = 0.0) -> dict:
+                 harmonics: int = 5, pause_hz: float = 0.2, payload_kg: float = 0.0,
+                 coupled_wrist: float = 0.0) -> dict:
     """
     Joint states of an arm following an exciting trajectory, with ground truth.
 
@@ -261,6 +286,10 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
     payload_kg : float
         A payload at the flange [kg] (``realistic.PAYLOAD_MOUNT``) that the URDF does not have:
         it is in the measured effort (gravity and inertia), not in ``tau_rb_urdf``.
+    coupled_wrist : float
+        Coulomb level [N m] of a wrist motor that drives the last two joints together (a
+        coupled transmission, :func:`coupled_wrist_friction`): its friction rides on their
+        velocities' sum and shows in both joints' torques, beside their own (0: none).
 
     Returns
     -------
@@ -313,6 +342,8 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
         fric = realistic_friction(robot, qd_true, grav, SIGN_VELOCITY)
     else:
         fric = np.zeros((k, n))
+    if coupled_wrist:
+        fric = fric + coupled_wrist_friction(qd_true, coupled_wrist)
     b = FRICTION_TABLES[robot][:, 4].copy() if bias else np.zeros(n)
     effort = tau_rb + fric + b + noise_rng.normal(0.0, noise_sd, (k, n))
     qd = qd_true + noise_rng.normal(0.0, velocity_noise_sd, (k, n))
@@ -321,6 +352,7 @@ def simulate_arm(robot: str = 'panda', duration_s: float = 20.0, rate_hz: float 
         'qd_true': qd_true, 'qdd': qdd, 'effort': effort, 'tau_rb': tau_rb,
         'tau_rb_urdf': tau_rb_urdf, 'payload': tau_rb - tau_rb_urdf, 'payload_gravity': pay_g,
         'friction': fric, 'bias': b, 'friction_model': kind, 'payload_kg': float(payload_kg),
+        'coupled_wrist': float(coupled_wrist),
         'nonpassive_fraction': negative_power_fraction(qd, effort - tau_rb),
         'nonpassive_fraction_per_joint': np.mean(qd * (effort - tau_rb) < 0.0, axis=0),
         'raw_negative_power_fraction': negative_power_fraction(qd, effort),

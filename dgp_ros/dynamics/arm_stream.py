@@ -42,7 +42,7 @@ def driver_order(robot: str) -> list:
 
 def demo_arm(robot: str, duration_s: float, seed: int = 0, payload_kg: Optional[float] = None,
              friction: str = 'realistic', rate_hz: float = 1000.0,
-             base_hz: float = 0.1) -> dict:
+             base_hz: float = 0.1, coupled_wrist: float = 0.0) -> dict:
     """
     Simulate the robot demo's run (module docstring).
 
@@ -62,6 +62,8 @@ def demo_arm(robot: str, duration_s: float, seed: int = 0, payload_kg: Optional[
         Sample rate [Hz].
     base_hz : float
         Base frequency of the path [Hz] (> 0): the task cycle is ``1 / base_hz`` s.
+    coupled_wrist : float
+        Coulomb level [N m] of a motor driving the last two joints together (``simulate_arm``).
 
     Returns
     -------
@@ -77,7 +79,7 @@ def demo_arm(robot: str, duration_s: float, seed: int = 0, payload_kg: Optional[
     if payload_kg is None:
         payload_kg = DEFAULT_PAYLOAD_KG[robot]
     d = simulate_arm(robot, duration_s, rate_hz=rate_hz, seed=seed, friction=friction,
-                     payload_kg=payload_kg, base_hz=base_hz)
+                     payload_kg=payload_kg, base_hz=base_hz, coupled_wrist=coupled_wrist)
     d['base_hz'] = base_hz
     return d
 

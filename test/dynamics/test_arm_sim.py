@@ -121,3 +121,22 @@ def test_urdf_lookup(monkeypatch, tmp_path):
     monkeypatch.setattr(arm_sim, '_FALLBACK_PREFIXES', ())
     with pytest.raises(FileNotFoundError, match='pip install example-robot-data'):
         example_robot_urdf('panda')
+
+
+def test_a_coupled_wrist_motor_is_passive_and_shows_in_both_joints():
+    """Its friction rides on the last two joints' velocity sum: passive, not per joint."""
+    rng = np.random.default_rng(3)
+    for scale in (0.1, 1.0, 100.0):                   # inside and far outside an arm's speeds
+        qd = rng.standard_normal((5000, 7)) * scale
+        f = arm_sim.coupled_wrist_friction(qd, 0.6)
+        assert np.all(np.einsum('kn,kn->k', qd, f) >= 0.0)
+        assert np.all(f[:, :5] == 0.0) and np.array_equal(f[:, 5], f[:, 6])
+    # opposite velocities: the motor stands still and neither joint feels it
+    assert np.allclose(arm_sim.coupled_wrist_friction(np.array([0, 0, 0, 0, 0, 1.0, -1.0]),
+                                                      0.6), 0.0)
+    a = arm_sim.simulate_arm('ur5', 2.0, rate_hz=200.0, seed=1, friction='realistic')
+    b = arm_sim.simulate_arm('ur5', 2.0, rate_hz=200.0, seed=1, friction='realistic',
+                             coupled_wrist=0.6)
+    extra = b['friction'] - a['friction']
+    assert np.allclose(extra, arm_sim.coupled_wrist_friction(a['qd_true'], 0.6))
+    assert np.abs(extra[:, -2:]).max() > 0.5 and b['coupled_wrist'] == 0.6
