@@ -71,10 +71,11 @@ def transmission_fit(Qd, R, V, learned_s: float) -> tuple:
     Fit Coulomb-viscous per joint, with a motor between adjacent joints where blocks show it.
 
     Qd, R (n, N): the samples learned over ``learned_s`` s, in order; V (k, N): held-out
-    velocities. A pair (a, a + 1, s)
-    serves where, on each of the last ``FOLDS`` blocks fitted on everything before, it cuts the
-    two joints' summed squared error by ``MARGIN`` and neither joint's grows; the best such pair
-    per joint. Returns (predictions (k, N) [N m], the pairs served).
+    velocities. A pair (a, a + 1, s) serves where it cuts the two joints' summed squared error
+    by ``MARGIN`` and neither joint's grows, both on the last ``FOLDS`` blocks (each fitted on
+    everything before) and across the interleaved halves of the run (alternate blocks, each
+    half fitted on the other); the best such pair per joint. Returns (predictions (k, N)
+    [N m], the pairs served).
     """
     from scipy.optimize import lsq_linear
     n, N = Qd.shape
@@ -83,19 +84,35 @@ def transmission_fit(Qd, R, V, learned_s: float) -> tuple:
     def own_fit(X, Y, j):
         return lsq_linear(_own(X[:, j]), Y[:, j], bounds=([0, 0, -np.inf], np.inf)).x
     P = np.column_stack([_own(V[:, j])[:, :2] @ own_fit(Qd, R, j)[:2] for j in range(N)])
+    # the newest blocks, each fitted on everything before; the interleaved halves of the run
+    # (alternate blocks), each fitted on one and scored on the other
+    folds = [(np.arange(n - k * per), np.arange(n - k * per, n - (k - 1) * per))
+             for k in range(FOLDS, 0, -1)]
+    half = (np.arange(n) // per) % 2 == 0
+    folds_h = [(np.flatnonzero(half), np.flatnonzero(~half)),
+               (np.flatnonzero(~half), np.flatnonzero(half))]
+
+    def errors(pair, splits):
+        a, b, _ = pair
+        e_own, e_pair = np.zeros(2), np.zeros(2)
+        for tr, te in splits:
+            for i, j in enumerate((a, b)):
+                e_own[i] += np.sum((_own(Qd[te, j]) @ own_fit(Qd[tr], R[tr], j) - R[te, j]) ** 2)
+            pred = _pair_fit(Qd[tr], R[tr], pair)(Qd[te])
+            e_pair += np.sum((pred - R[te][:, [a, b]]) ** 2, axis=0)
+        return e_own, e_pair
+
     wins = []
     for a in range(N - 1):
         for s in (1, -1):
-            e_own, e_pair = np.zeros(2), np.zeros(2)
-            for k in range(FOLDS, 0, -1):
-                lo, hi = n - k * per, n - (k - 1) * per
-                for i, j in enumerate((a, a + 1)):
-                    e_own[i] += np.sum((_own(Qd[lo:hi, j]) @ own_fit(Qd[:lo], R[:lo], j)
-                                        - R[lo:hi, j]) ** 2)
-                pred = _pair_fit(Qd[:lo], R[:lo], (a, a + 1, s))(Qd[lo:hi])
-                e_pair += np.sum((pred - R[lo:hi][:, [a, a + 1]]) ** 2, axis=0)
-            if e_pair.sum() < (1.0 - MARGIN) * e_own.sum() and np.all(e_pair <= e_own):
-                wins.append((e_pair.sum() / e_own.sum(), (a, a + 1, s)))
+            ok, ratio = True, 1.0
+            for splits in (folds, folds_h):
+                e_own, e_pair = errors((a, a + 1, s), splits)
+                ok &= bool(e_pair.sum() < (1.0 - MARGIN) * e_own.sum() and
+                           np.all(e_pair <= e_own))
+                ratio = min(ratio, e_pair.sum() / e_own.sum())
+            if ok:
+                wins.append((ratio, (a, a + 1, s)))
     served, used = [], set()
     for _, (a, b, s) in sorted(wins):
         if a not in used and b not in used:
