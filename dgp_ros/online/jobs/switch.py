@@ -142,7 +142,7 @@ class Switch:
                 if behind:
                     parts.structure.reselect_soon()
             if behind:
-                parts.rebases.run(freeze=True)     # what save does before it writes
+                parts.rebases.run(parts, freeze=True)  # what save does before it writes
             with lock:
                 if served.model is None or job.generation != refits.generation:
                     return False, 'no model to freeze'

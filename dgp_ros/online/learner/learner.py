@@ -105,8 +105,7 @@ class Learner:
         self.served = Served(1 if old is None else self.served.version + 1)
         self.refits = Refits(lock, self._settings, self.window, self.structure, self.served, h,
                              self._factory, self.save, 1 if old is None else old.generation)
-        self.rebases = Rebases(lock, self._settings, self.window, self.structure, self.served,
-                               self.refits, h, self._factory)
+        self.rebases = Rebases(self._factory)
         self.switch = Switch(self.save, lambda: self._last_t)     # handed the parts in each call
         self.snapshots = Snapshots()
         self._parts = Parts(lock, self._settings, self.window, self.structure, self.grounds,
@@ -238,11 +237,11 @@ class Learner:
             if self.append_each:
                 self.catch_up()
             job = self._next_job(t)
-            rebase = job is None and self.rebases.due()
+            rebase = job is None and self.rebases.due(self._parts)
         if job is not None:
             self.refits.start(job, self.parts())
         elif rebase:
-            self.rebases.soon()
+            self.rebases.soon(self.parts())
         return added, residuals
 
     def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray, q=None) -> int:
@@ -262,11 +261,11 @@ class Learner:
             if self._last_t is None and not self.switch.wanted:
                 return
             job = self._next_job(self._last_t, idle)
-            rebase = job is None and self.rebases.due()
+            rebase = job is None and self.rebases.due(self._parts)
         if job is not None:
             self.refits.start(job, self.parts())
         elif rebase:
-            self.rebases.soon()
+            self.rebases.soon(self.parts())
 
     def _next_job(self, stamp, idle: bool = False):
         """Return the job due now (under the lock): the freeze with learning off, else a refit."""
