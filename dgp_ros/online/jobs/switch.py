@@ -146,8 +146,8 @@ class Switch:
             with lock:
                 if served.model is None or job.generation != refits.generation:
                     return False, 'no model to freeze'
-                proof = refits.recertify_job(self._last_t(), job.config, full=True)
-            ok, what = refits.prove_now(proof)
+                proof = refits.recertify_job(self._last_t(), parts, job.config, full=True)
+            ok, what = refits.prove_now(proof, parts)
             path = job.config.model_path
             with lock:
                 current = job.generation == refits.generation and served.model is not None
