@@ -105,10 +105,11 @@ class Learner:
         self.served = Served(1 if old is None else self.served.version + 1)
         self.refits = Refits(self._factory, cfg.buffer_size, 1 if old is None else old.generation)
         self.rebases = Rebases(self._factory)
-        self.switch = Switch(self.save, lambda: self._last_t)     # handed the parts in each call
+        self.switch = Switch()                  # handed the parts in each call
         self.snapshots = Snapshots()
         self._parts = Parts(lock, self._settings, self.window, self.structure, self.grounds,
-                            self.served, self.rebases, self.refits, self.switch, h, files.save)
+                            self.served, self.rebases, self.refits, self.switch, h,
+                            lambda: self._last_t, files.save)
 
     def _settings(self) -> EstimatorConfig:
         return self.config
