@@ -131,3 +131,35 @@ def test_each_module_of_the_learner_says_which_part_it_is():
     with open(os.path.join(ONLINE, 'learner/files.py')) as fh:
         doc = ast.get_docstring(ast.parse(fh.read()))
     assert 'steps of' in ' '.join(doc.split()).lower() and 'parts.Parts' in doc
+
+
+def test_the_jobs_keep_no_other_part():
+    """
+    ``Refits``, ``Rebases`` and ``Switch`` keep no part, lock or method of the learner (issue 65).
+
+    Each step is passed the learner's parts (``parts.Parts``); a part's attributes hold none of
+    them, no method bound to one and no function closing over one or over the learner.
+    """
+    import numpy as np
+    from dgp_ros.online import EstimatorConfig
+    from dgp_ros.online.learner.learner import Learner
+    L = Learner(EstimatorConfig(refit_mode='sync', min_samples=10, buffer_size=40))
+    rng = np.random.default_rng(0)
+    for i in range(30):
+        qd = rng.uniform(-1, 1, 2)
+        L.learn(0.01 * i, qd, 0.5 * qd)
+    parts = L.parts()
+    held = {id(p) for p in parts} | {id(L)}
+
+    def touches(value) -> bool:
+        if id(value) in held or id(getattr(value, '__self__', None)) in held:
+            return True
+        cells = getattr(value, '__closure__', None) or ()
+        return any(id(c.cell_contents) in held for c in cells)
+
+    for name in ('refits', 'rebases', 'switch'):
+        part = getattr(parts, name)
+        kept = [k for k, v in vars(part).items() if touches(v)]
+        assert not kept, f'{name} keeps {kept}'
+    # the checker sees a kept peer, a bound method of one and a closure over the learner
+    assert touches(parts.window) and touches(parts.settings) and touches(parts.last_t)

@@ -250,7 +250,7 @@ def test_nothing_but_the_freeze_changes_a_model_that_no_longer_learns(tmp_path):
         assert np.array_equal(saved.posterior_.weights, before.model.posterior_.weights)
         for i in range(200, 260):                    # not learned: counted
             L.learn(t[i], Q[i], T[i])
-        L.rebases.run()                              # what a late rebase thread would do
+        L.rebases.run(L.parts())                     # what a late rebase thread would do
         L.catch_up()
         L.poll(idle=True)
         after = L.snapshot()

@@ -15,7 +15,11 @@ with every answer projected; the proof runs in a re-proof job (``refits``). Only
 model is refused (the samples then wait for the next refit, and the learner's health says why).
 
 In line (``refit_mode='sync'``) a rebase runs at once, in learning order; otherwise in a thread
-of its own (``dgp_rebase``), as soon as the last rebase's cost allows it.
+of its own (``dgp_rebase``), as soon as the last rebase's cost allows it. It keeps no other part:
+each call is passed the learner's parts (``parts.Parts``: the lock, the settings, the window,
+structure and served model a rebase reads and feeds, the refits whose hyper-parameters and
+generation it runs at, the health record), and the rebase thread is handed them when it starts
+(the parts are made anew with the ``Rebases`` on a reset, so they are the same for its life).
 """
 from __future__ import annotations
 
@@ -32,10 +36,9 @@ class Rebases:
     """
     When and how the served model is rebased (module docstring).
 
-    lock : the learner's lock (taken to read the window and to swap, never while fitting);
-    settings : returns the learner's configuration as it is now; window, structure, served,
-    refits : the parts a rebase reads and feeds; health : the learner's ``LearnerHealth``;
-    factory : builds a model (``dgp_ros.gp.make_model``).
+    It keeps no other part (module docstring): ``wanted``, ``due``, ``soon`` and ``run`` are
+    passed the learner's parts (the lock is taken to read the window and to swap, never while
+    fitting). factory : builds a model (``dgp_ros.gp.make_model``).
     """
 
     #: a rebase once this fraction of ``buffer_size`` was appended since the last (re)fit
@@ -47,11 +50,8 @@ class Rebases:
     ABSORB_WAIT = 2.0
     BACKLOG_ABSORB_WAIT = 8.0
 
-    def __init__(self, lock, settings: Callable, window, structure, served, refits, health,
-                 factory: Callable):
-        self._lock, self._settings = lock, settings
-        self._window, self._structure, self._served = window, structure, served
-        self._refits, self._health, self._factory = refits, health, factory
+    def __init__(self, factory: Callable):
+        self._factory = factory
         self._thread = None
         self._wanted = threading.Event()
         self._at = 0.0                # perf_counter() at the end of the last rebase
@@ -72,16 +72,16 @@ class Rebases:
         self._cost = 0.0
 
     # ------------------------------------------------------------------ decisions
-    def wanted(self) -> bool:
+    def wanted(self, parts) -> bool:
         """Tell whether a rebase is wanted, however soon its cost allows it (``due``)."""
-        cfg, served = self._settings(), self._served
+        cfg, served = parts.settings(), parts.served
         if served.model is None or not cfg.learning:
             return False
-        waiting = served.unheld(self._window.seq) and (not self.appending or served.blocked)
-        return bool(waiting or self._structure.reselect_due() or
+        waiting = served.unheld(parts.window.seq) and (not self.appending or served.blocked)
+        return bool(waiting or parts.structure.reselect_due() or
                     served.appended >= max(1, cfg.buffer_size // self.REBASE_FRACTION))
 
-    def due(self) -> bool:
+    def due(self, parts) -> bool:
         """
         Tell whether a rebase is due.
 
@@ -92,30 +92,32 @@ class Rebases:
         allows (at most a third of the time rebasing; a ninth while samples queue up for the
         learner: taking every sample in comes first).
         """
-        if not self.wanted():
+        if not self.wanted(parts):
             return False
-        if self._settings().refit_mode == 'sync':
+        if parts.settings().refit_mode == 'sync':
             return True
         return time.perf_counter() - self._at >= max(self.MIN_ABSORB_S, self._wait * self._cost)
 
-    def soon(self) -> None:
+    def soon(self, parts) -> None:
         """Rebase in line (``sync``), else in the rebase thread (never on the caller's path)."""
-        if self._settings().refit_mode == 'sync':
-            self.run()
+        if parts.settings().refit_mode == 'sync':
+            self.run(parts)
             return
         if self._thread is None or not self._thread.is_alive():
-            self._thread = threading.Thread(target=self._loop, name='dgp_rebase', daemon=True)
+            self._thread = threading.Thread(target=self._loop, args=(parts,), name='dgp_rebase',
+                                            daemon=True)
             self._thread.start()
         self._wanted.set()
 
-    def _loop(self) -> None:
+    def _loop(self, parts) -> None:
+        """Rebase whenever one is wanted (``soon``), with the parts handed at its start."""
         while True:
             self._wanted.wait()
             self._wanted.clear()
-            self.run()
+            self.run(parts)
 
     # ------------------------------------------------------------------ the rebase
-    def run(self, freeze: bool = False) -> None:
+    def run(self, parts, freeze: bool = False) -> None:
         """
         Refit the model on the window at its hyper-parameters (exact; O(N n^3)).
 
@@ -128,12 +130,12 @@ class Rebases:
         appended to it after it is swapped in, by the thread that learns them.
         """
         t0 = time.perf_counter()
-        win, st = self._window, self._structure
-        with self._lock:
-            cfg = self._settings()
+        win, st, refits, lock = parts.window, parts.structure, parts.refits, parts.lock
+        with lock:
+            cfg = parts.settings()
             if not (cfg.learning or freeze):
                 return
-            seq, generation, hyper = win.seq, self._refits.generation, self._refits.hyper
+            seq, generation, hyper = win.seq, refits.generation, refits.hyper
             if st.reselect_due():
                 st.reselect(win)        # retargets the window; the prior rides in the hyper
             else:
@@ -150,18 +152,18 @@ class Rebases:
                 why = 'non-finite weights'
         except Exception as exc:        # noqa: BLE001 - the incumbent keeps serving
             why = f'{type(exc).__name__}: {exc}'
-        with self._lock:
+        with lock:
             self._cost = time.perf_counter() - t0
             self._at = time.perf_counter()
-            if generation != self._refits.generation or hyper is not self._refits.hyper:
+            if generation != refits.generation or hyper is not refits.hyper:
                 return                  # reset, or a refit swapped in other hyper-parameters
-            h = self._health
+            h = parts.health
             if why:                     # the samples wait for the next refit
                 h.absorbs_rejected += 1
                 h.last_absorb_error = why
                 return
             # the samples learned meanwhile are appended by the thread that learns them (in
             # a thread of the node process the message path answers from this very model)
-            self._served.based(model, seq, gen)
+            parts.served.based(model, seq, gen)
             h.absorbs += 1
             h.last_absorb_error = ''

@@ -16,9 +16,11 @@ hyper-parameters on the window as it is now, and swapped in under the lock, whic
 to read the window and for the swap. A re-proven model is caught up with the samples appended to
 the served one meanwhile. An unproven candidate serves with every answer projected
 (``worker``); re-proofs after failed ones wait longer (``proof_gap``). The learning switch's
-freeze job runs here too: ``start`` and ``run`` are passed the learner's parts (``parts.Parts``)
-and hand a freeze job, or the freeze wanted after a job, to ``parts.switch``; the two parts
-keep no reference to each other.
+freeze job runs here too: ``run`` hands a freeze job, or the freeze wanted after a job, to
+``parts.switch``. It keeps no other part: every step that reads or changes one is passed the
+learner's parts (``parts.Parts``: the lock, the settings, the window, structure and served model
+a job reads and feeds, the health record, the switch, and ``parts.save``, the step that saves a
+swapped-in model to ``model_path``), and the job thread is handed them when it starts.
 """
 from __future__ import annotations
 
@@ -42,10 +44,9 @@ class Refits:
     """
     The learner's jobs (module docstring).
 
-    lock : the learner's lock; settings : returns the configuration as it is now; window,
-    structure, served : the parts a job reads and feeds; health : the learner's
-    ``LearnerHealth``; factory : builds a model; save : the learner's ``save(path)`` (a model
-    swapped in is saved to ``model_path``); generation : where to start counting.
+    It keeps no other part (module docstring): the steps are passed the learner's parts.
+    factory : builds a model; buffer_size : the configuration's (the most samples a running fit
+    keeps for its held-out check); generation : where to start counting.
     """
 
     #: a stamp this many refit periods ahead of the refit clock is a jump, not elapsed time
@@ -70,11 +71,8 @@ class Refits:
     #: ... at most once per this much learning time (s)
     NOVELTY_GAP_S = 1.0
 
-    def __init__(self, lock, settings: Callable, window, structure, served, health,
-                 factory: Callable, save: Callable, generation: int = 0):
-        self._lock, self._settings = lock, settings
-        self._window, self._structure, self._served = window, structure, served
-        self._health, self._factory, self._save = health, factory, save
+    def __init__(self, factory: Callable, buffer_size: int, generation: int = 0):
+        self._factory = factory
         self._generation = int(generation)
         self._thread: Optional[threading.Thread] = None
         self._hyper: Optional[dict] = None   # warm start of the next fit (hyperparams_)
@@ -90,7 +88,7 @@ class Refits:
         self._retry_at: Optional[int] = None  # window seq at which a rejected fit is retried
         # (seq, qd, tau) added while a refit runs; only the newest buffer_size can survive the
         # model's window, so older ones are dropped here
-        self._pending: deque = deque(maxlen=settings().buffer_size)
+        self._pending: deque = deque(maxlen=buffer_size)
 
     # ------------------------------------------------------------------ state
     @property
@@ -153,12 +151,12 @@ class Refits:
         if self._clock is not None:
             self._clock = t
 
-    def proof_gap(self, base: float) -> float:
+    def proof_gap(self, base: float, health) -> float:
         """Stamp seconds between re-proofs: ``base``, doubled per failed proof in a row (<= 8x)."""
-        return base * 2 ** min(self._health.proofs_failed_in_a_row, 3)
+        return base * 2 ** min(health.proofs_failed_in_a_row, 3)
 
     # ------------------------------------------------------------------ decisions
-    def note_novelty(self, stamp: float, qd: np.ndarray, surprise: float) -> None:
+    def note_novelty(self, stamp: float, qd: np.ndarray, surprise: float, parts) -> None:
         """
         Ask for an optimizing refit when the data leave what the hyper-parameters were fitted on.
 
@@ -175,8 +173,8 @@ class Refits:
         the box all the time.
         """
         box = self._hyper_box
-        cfg = self._settings()
-        if box is None or self._served.model is None or not surprise > self.NOVELTY_SURPRISE \
+        cfg = parts.settings()
+        if box is None or parts.served.model is None or not surprise > self.NOVELTY_SURPRISE \
                 or cfg.optimize_every_n_refits == 0 or cfg.refit_period_s == 0:   # by request
             return
         lo, hi = box
@@ -185,13 +183,13 @@ class Refits:
             last = self._novel_t
             if last is None or stamp < last or stamp - last >= self.NOVELTY_GAP_S:
                 self._novel, self._novel_t = True, stamp
-                self._health.novelty_refits += 1
+                parts.health.novelty_refits += 1
 
-    def _outgrown(self) -> bool:
+    def _outgrown(self, window) -> bool:
         """Tell whether the buffer has at least doubled since the hyper-parameters were learned."""
-        return 0 < self._opt_n and self._window.size >= 2 * self._opt_n
+        return 0 < self._opt_n and window.size >= 2 * self._opt_n
 
-    def next_job(self, stamp: float, last_t: Optional[float],
+    def next_job(self, stamp: float, last_t: Optional[float], parts,
                  idle: bool = False) -> Optional[RefitJob]:
         """
         Make the one decision (under the lock) of what the worker does next, if anything.
@@ -200,8 +198,8 @@ class Refits:
         ``idle``: the stream paused (``Learner.poll``): a stale model not tried since it last
         changed is re-proven without waiting for the re-proof period.
         """
-        cfg, served, h = self._settings(), self._served, self._health
-        if self._window.buffer is None or self._window.size < cfg.min_samples or self.running():
+        cfg, served, h = parts.settings(), parts.served, parts.health
+        if parts.window.buffer is None or parts.window.size < cfg.min_samples or self.running():
             return None
         model = served.model
         if model is not None and self._clock is None:
@@ -214,25 +212,25 @@ class Refits:
                or (model is None and self._clock is None)                      # first fit
                or (cfg.refit_period_s > 0 and self._clock is not None and
                    stamp - self._clock >= cfg.refit_period_s)                 # periodic
-               or (model is not None and self._outgrown() and
+               or (model is not None and self._outgrown(parts.window) and
                    h.consecutive_refit_failures == 0)                         # buffer doubled
-               or (self._retry_at is not None and self._window.seq >= self._retry_at)
+               or (self._retry_at is not None and parts.window.seq >= self._retry_at)
                or (self._novel and model is not None))                        # new territory
         if due:
             self._requested = False
             self._retry_at = None
             self._clock = stamp
-            return self._fit_job(last_t)
+            return self._fit_job(last_t, parts)
         if cfg.refit_mode != 'sync' and model is not None and model.certificate().stale:
             # a stale model stays passive pointwise: re-prove at most every refit_period_s / 4
             # (longer after failed proofs), beside the answers; in line the proof comes with the
             # refits only (it would hold up the replay and be stale at the next sample)
-            gap = self.proof_gap(cfg.refit_period_s / 4.0 if cfg.refit_period_s > 0 else 0.25)
+            gap = self.proof_gap(cfg.refit_period_s / 4.0 if cfg.refit_period_s > 0 else 0.25, h)
             last = self._last_recert
             if (last is None or stamp < last or stamp - last >= gap or
                     (idle and served.held != self._recert_seq)) and self._proof_spaced():
                 self._last_recert, self._recert_seq = stamp, served.held
-                return self.recertify_job(last_t)
+                return self.recertify_job(last_t, parts)
         return None
 
     def _proof_spaced(self) -> bool:
@@ -248,7 +246,7 @@ class Refits:
         return self._proof_done is None or \
             time.monotonic() >= self._proof_done + self.PROOF_SPACING * self._proof_wall
 
-    def recertify_job(self, last_t: Optional[float], config=None,
+    def recertify_job(self, last_t: Optional[float], parts, config=None,
                       full: bool = False) -> RefitJob:
         """
         Return a job that re-proves a copy of the served model (under the lock).
@@ -256,19 +254,19 @@ class Refits:
         config : the job's configuration (default: a copy of the current one); full : the
         full proof (``switch``).
         """
-        served = self._served
-        cfg = dataclasses.replace(self._settings()) if config is None else config
+        served = parts.served
+        cfg = dataclasses.replace(parts.settings()) if config is None else config
         return RefitJob('recertify', cfg, served.held, self._generation, last_t,
                         model=copy.deepcopy(served.model), source=served.model,
                         target_gen=served.gen, full=full)
 
-    def _fit_job(self, last_t: Optional[float]) -> RefitJob:
-        h, cfg, win, st = self._health, self._settings(), self._window, self._structure
+    def _fit_job(self, last_t: Optional[float], parts) -> RefitJob:
+        h, cfg, win, st = parts.health, parts.settings(), parts.window, parts.structure
         h.refits_started += 1
         k = h.refits_started
-        optimize = (self._served.model is None or self._hyper is None or
+        optimize = (parts.served.model is None or self._hyper is None or
                     (cfg.optimize_every_n_refits > 0 and k % cfg.optimize_every_n_refits == 0)
-                    or self._outgrown() or self._novel)
+                    or self._outgrown(win) or self._novel)
         self._novel = False
         if st.auto:
             st.reselect(win)            # prior='auto': structure and correction on the history
@@ -277,10 +275,10 @@ class Refits:
             self._hyper_box = (Q.min(axis=0), Q.max(axis=0))
         # re-learning on data like the last optimum's refines it (no restarts); after the buffer
         # doubled the data changed enough to search again from scratch
-        warm = self._hyper is not None and not self._outgrown()
+        warm = self._hyper is not None and not self._outgrown(win)
         # the served model as it is now: the candidate's opponent on the samples that arrive
         # during its fit (appended to the served one meanwhile; a snapshot keeps this state)
-        model = self._served.model
+        model = parts.served.model
         base = None if model is None else model.snapshot(variance=False)
         return RefitJob('fit', dataclasses.replace(cfg), win.seq, self._generation, last_t,
                         Q=Q, T=T, optimize=optimize, hyper=st.with_prior(self._hyper),
@@ -288,31 +286,32 @@ class Refits:
                         warm=warm, kw=st.model_kw(cfg), correction=st.correction(),
                         target_gen=win.target_gen, source=base)
 
-    def request(self, last_t: Optional[float]) -> Tuple[Optional[RefitJob], str]:
+    def request(self, last_t: Optional[float], parts) -> Tuple[Optional[RefitJob], str]:
         """Return the refit asked for now, or (None, why not) (under the lock)."""
-        cfg = self._settings()
+        cfg = parts.settings()
         if not cfg.learning:
             return None, 'learning is off (parameter learning): the model is frozen'
-        if self._window.size < cfg.min_samples:
-            return None, f'not enough samples ({self._window.size} < min_samples ' \
+        if parts.window.size < cfg.min_samples:
+            return None, f'not enough samples ({parts.window.size} < min_samples ' \
                 f'{cfg.min_samples})'
         if self.running():
             return None, 'a refit is already running'
         if last_t is not None:
             self._clock = last_t
-        return self._fit_job(last_t), ''
+        return self._fit_job(last_t, parts), ''
 
     # ------------------------------------------------------------------ running
     def start(self, job: RefitJob, parts) -> Tuple[bool, str]:
         """
         Run ``job``: in the job thread (``async``), else in line; (ok, message).
 
-        parts : the learner's parts (``parts.Parts``), passed on to ``run``.
+        parts : the learner's parts (``parts.Parts``), passed on to ``run`` (the job thread is
+        handed them).
         """
         what = (f'{job.kind} started' if job.kind != 'fit' else
                 f'refit started on {job.Q.shape[0]} samples '
                 f'({"optimizing" if job.optimize else "fixed"} hyper-parameters)')
-        with self._lock:
+        with parts.lock:
             if self.running():
                 return False, 'a refit is already running'
             self._pending.clear()
@@ -333,15 +332,15 @@ class Refits:
         switch = parts.switch
         if job.kind == 'freeze':
             return switch.freeze(job, parts)
-        out = self._integrate(run_job(job, self._factory))
+        out = self._integrate(run_job(job, self._factory), parts)
         follow = switch.due_after_job(parts)    # switched off while it ran (and discarded it)
         return switch.freeze(follow, parts) if follow is not None else out
 
-    def prove_now(self, job: RefitJob) -> Tuple[bool, str]:
+    def prove_now(self, job: RefitJob, parts) -> Tuple[bool, str]:
         """Run a re-proof job here, with no freeze after it (the freeze's own proof)."""
-        return self._integrate(run_job(job, self._factory))
+        return self._integrate(run_job(job, self._factory), parts)
 
-    def _integrate(self, res: RefitResult) -> Tuple[bool, str]:
+    def _integrate(self, res: RefitResult, parts) -> Tuple[bool, str]:
         """
         Finish a job: held-out check, catch-up, swap, record (module docstring).
 
@@ -351,19 +350,19 @@ class Refits:
         the one it was copied from, with the samples appended to that one meanwhile.
         """
         job, model, ok, why, proof = res.job, res.model, res.ok, res.reason, res.proof
-        cfg, h, win = job.config, self._health, self._window
+        cfg, h, win = job.config, parts.health, parts.window
         t0 = time.perf_counter() - res.seconds
         seq, gen = job.seq, job.target_gen
         try:
             if ok and job.kind == 'fit':
-                ok, why, _ = self._held_out(model, job.source, job.seq)
+                ok, why, _ = self._held_out(model, job.source, job.seq, parts.lock)
                 if not ok:
                     h.refits_rejected += 1
             if ok and job.kind == 'fit':
-                with self._lock:
+                with parts.lock:
                     newer = win.seq != job.seq or win.target_gen != job.target_gen
                     Q, T = win.arrays() if newer else (None, None)
-                    correction = self._structure.correction()
+                    correction = parts.structure.correction()
                     seq, gen = win.seq, win.target_gen
                 if newer:
                     model.fit(Q, T, optimize=False, prove=False)
@@ -371,7 +370,7 @@ class Refits:
         except Exception as exc:
             ok, why = False, f'{type(exc).__name__}: {exc}'
         dt = time.perf_counter() - t0
-        with self._lock:
+        with parts.lock:
             if job.generation != self._generation:
                 return False, 'discarded: the estimator was reset'
             self._pending.clear()
@@ -379,14 +378,14 @@ class Refits:
                 h.proof_done(proof, job.stamp)
             if job.kind == 'recertify':
                 self._proof_done, self._proof_wall = time.monotonic(), dt
-                return self._recertified(job, model, ok, why, proof, dt)
+                return self._recertified(job, model, ok, why, proof, dt, parts)
             if ok:
-                self._swap(job, model, seq, gen)
+                self._swap(job, model, seq, gen, parts)
             if not ok and why.startswith('sanity check') and 'samples that arrived' not in why:
                 h.refits_rejected += 1
             if ok:
                 self._retry_at = None
-            elif self._served.model is None or h.consecutive_refit_failures < self.MAX_RETRIES:
+            elif parts.served.model is None or h.consecutive_refit_failures < self.MAX_RETRIES:
                 # a rejected candidate is retried once fresh samples arrived (it learns from
                 # the ones it failed on), not only at the next refit period; a short bag, or
                 # refit_period_s = 0, would otherwise keep the first model (or, before any, the
@@ -399,14 +398,14 @@ class Refits:
             error = h.last_refit_error
         if ok and cfg.model_path:
             try:
-                self._save(cfg.model_path)
+                parts.save(parts, cfg.model_path)
             except Exception as exc:
-                with self._lock:
+                with parts.lock:
                     h.last_refit_error = f'refit ok but saving failed: {exc}'
         return (True, f'refit ok in {dt:.3f} s') if ok else (False, error)
 
     def _recertified(self, job: RefitJob, model, ok: bool, why: str, proof: str,
-                     dt: float) -> Tuple[bool, str]:
+                     dt: float, parts) -> Tuple[bool, str]:
         """
         Serve a re-proven copy of the model (under the lock); (ok, message).
 
@@ -414,14 +413,14 @@ class Refits:
         replaces it otherwise); the samples appended to that one since are appended to the copy
         (its certificate then goes stale again, its repairs stay).
         """
-        h, served = self._health, self._served
+        h, served = parts.health, parts.served
         if not ok:
             h.last_refit_error = f'recertification failed: {why}'
             return False, h.last_refit_error
         if served.model is not job.source:
             return False, 'recertified, but a newer model serves'
         if served.held != job.seq:
-            run = self._window.run_of(job.seq, served.held, job.target_gen)
+            run = parts.window.run_of(job.seq, served.held, job.target_gen)
             if run is None:
                 return False, 'recertified, but the model moved on'
             try:
@@ -435,7 +434,7 @@ class Refits:
             return False, h.last_refit_error
         return True, f'recertified in {dt:.3f} s'
 
-    def _held_out(self, model, base, seq: int) -> Tuple[bool, str, int]:
+    def _held_out(self, model, base, seq: int, lock) -> Tuple[bool, str, int]:
         """
         Compare the candidate with ``base`` and its parametric part on the samples that arrived.
 
@@ -445,7 +444,7 @@ class Refits:
         part), the first ``HELD_OUT_EVERY``, then as many spread over the rest
         (``worker.held_out``). Returns (ok, reason, seq of the last of them).
         """
-        with self._lock:
+        with lock:
             newer = [(s, q, t) for (s, q, t) in self._pending if s > seq]
         if base is None or len(newer) < 10:
             return True, '', seq
@@ -457,16 +456,16 @@ class Refits:
                            np.array([t for _, _, t in newer]), self.HELD_OUT_FACTOR)
         return ok, why, newer[-1][0]
 
-    def _swap(self, job: RefitJob, model, seq: int, gen: int) -> None:
+    def _swap(self, job: RefitJob, model, seq: int, gen: int, parts) -> None:
         """Install a fitted candidate that holds the samples up to ``seq`` (under the lock)."""
-        self._served.based(model, seq, gen)
+        parts.served.based(model, seq, gen)
         self._hyper = model.hyperparams_
         if job.optimize:
             self._opt_n = job.Q.shape[0]
             picked = getattr(model, 'fit_info_', {}).get('elements')
             if picked:
-                self._health.elements = choice_summary(picked['choices'])
-                self._health.elements_scores = {c: [round(v, 4) for v in e]
+                parts.health.elements = choice_summary(picked['choices'])
+                parts.health.elements_scores = {c: [round(v, 4) for v in e]
                                                 for c, e in picked['heldout'].items()}
 
     def wait(self, timeout: Optional[float] = None) -> bool:

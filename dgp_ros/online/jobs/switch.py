@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from typing import Callable, Optional, Tuple
+from typing import Optional, Tuple
 
 from .worker import RefitJob
 
@@ -49,15 +49,14 @@ class Switch:
     It keeps no other part: the steps that read or change them (``job``, ``due_after_job``,
     ``start``, ``freeze``, ``wait_stopped``) are passed the learner's parts (``parts.Parts``:
     the lock, the settings, the window, structure, served model, rebases and refits a freeze
-    brings up to date and proves through, the health record). save : the learner's
-    ``save(path)``; last_t : returns the newest sample's learning time.
+    brings up to date and proves through, the health record, ``last_t`` (the newest sample's
+    learning time: the job's stamp) and ``save`` (the step that writes the frozen model)).
     """
 
     #: how long a save waits for learning to stop (s)
     STOP_WAIT_S = 60.0
 
-    def __init__(self, save: Callable, last_t: Callable):
-        self._save, self._last_t = save, last_t
+    def __init__(self):
         self._wanted = False          # switched off: the model still to be proven and saved
         self._freezing = False        # its job runs
 
@@ -101,7 +100,7 @@ class Switch:
 
     def _job(self, parts) -> RefitJob:
         return RefitJob('freeze', dataclasses.replace(parts.settings()), parts.window.seq,
-                        parts.refits.generation, self._last_t())
+                        parts.refits.generation, parts.last_t())
 
     def job(self, parts) -> Optional[RefitJob]:
         """Return the freeze job when one is wanted and no job runs (else None)."""
@@ -142,18 +141,18 @@ class Switch:
                 if behind:
                     parts.structure.reselect_soon()
             if behind:
-                parts.rebases.run(freeze=True)     # what save does before it writes
+                parts.rebases.run(parts, freeze=True)  # what save does before it writes
             with lock:
                 if served.model is None or job.generation != refits.generation:
                     return False, 'no model to freeze'
-                proof = refits.recertify_job(self._last_t(), job.config, full=True)
-            ok, what = refits.prove_now(proof)
+                proof = refits.recertify_job(parts.last_t(), parts, job.config, full=True)
+            ok, what = refits.prove_now(proof, parts)
             path = job.config.model_path
             with lock:
                 current = job.generation == refits.generation and served.model is not None
             if current and path:
                 try:
-                    what = f'{what}; saved to {self._save(path)}'
+                    what = f'{what}; saved to {parts.save(parts, path)}'
                 except Exception as exc:        # noqa: BLE001 - the model serves all the same
                     with lock:
                         parts.health.last_refit_error = f'frozen, but saving failed: {exc}'

@@ -79,7 +79,7 @@ def save(parts, path: Optional[str] = None) -> str:
              not structure.carried_by(model)):
         with lock:
             structure.reselect_soon()
-        parts.rebases.run()     # the saved prior and correction see the whole history
+        parts.rebases.run(parts)    # the saved prior and correction see the whole history
         with lock:
             model = copy.deepcopy(served.model)
     record = parts.grounds.record()

@@ -103,14 +103,13 @@ class Learner:
         # the counts a snapshot is recognized by keep increasing across resets
         self.grounds = Grounds(1 if old is None else self.grounds.seq + 1)
         self.served = Served(1 if old is None else self.served.version + 1)
-        self.refits = Refits(lock, self._settings, self.window, self.structure, self.served, h,
-                             self._factory, self.save, 1 if old is None else old.generation)
-        self.rebases = Rebases(lock, self._settings, self.window, self.structure, self.served,
-                               self.refits, h, self._factory)
-        self.switch = Switch(self.save, lambda: self._last_t)     # handed the parts in each call
+        self.refits = Refits(self._factory, cfg.buffer_size, 1 if old is None else old.generation)
+        self.rebases = Rebases(self._factory)
+        self.switch = Switch()                  # handed the parts in each call
         self.snapshots = Snapshots()
         self._parts = Parts(lock, self._settings, self.window, self.structure, self.grounds,
-                            self.served, self.rebases, self.refits, self.switch, h)
+                            self.served, self.rebases, self.refits, self.switch, h,
+                            lambda: self._last_t, files.save)
 
     def _settings(self) -> EstimatorConfig:
         return self.config
@@ -238,11 +237,11 @@ class Learner:
             if self.append_each:
                 self.catch_up()
             job = self._next_job(t)
-            rebase = job is None and self.rebases.due()
+            rebase = job is None and self.rebases.due(self._parts)
         if job is not None:
             self.refits.start(job, self.parts())
         elif rebase:
-            self.rebases.soon()
+            self.rebases.soon(self.parts())
         return added, residuals
 
     def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray, q=None) -> int:
@@ -262,17 +261,17 @@ class Learner:
             if self._last_t is None and not self.switch.wanted:
                 return
             job = self._next_job(self._last_t, idle)
-            rebase = job is None and self.rebases.due()
+            rebase = job is None and self.rebases.due(self._parts)
         if job is not None:
             self.refits.start(job, self.parts())
         elif rebase:
-            self.rebases.soon()
+            self.rebases.soon(self.parts())
 
     def _next_job(self, stamp, idle: bool = False):
         """Return the job due now (under the lock): the freeze with learning off, else a refit."""
         if not self.config.learning:
             return self.switch.job(self._parts)     # serve only: nothing else (``switch``)
-        return self.refits.next_job(stamp, self._last_t, idle)
+        return self.refits.next_job(stamp, self._last_t, self._parts, idle)
 
     def _learn(self, stamp: float, qd: np.ndarray, tau: np.ndarray, q,
                thin: int = 1) -> Tuple[bool, list]:
@@ -313,7 +312,7 @@ class Learner:
         yt = st.push(stamp, q, qd, qdd, residual, self._N, self.structure_names())
         target = st.target(residual, yt)
         surprise = self.grounds.note(stamp, qd, target, prior, residual, q, self.served.model)
-        self.refits.note_novelty(stamp, qd, surprise)
+        self.refits.note_novelty(stamp, qd, surprise, self._parts)
         if not win.novel(self.config, qd):
             h.samples_skipped += 1
             return False
@@ -381,7 +380,7 @@ class Learner:
     def request_refit(self) -> Tuple[bool, str]:
         """Refit now (async: start it in the background). Returns (ok, message)."""
         with self._lock:
-            job, why = self.refits.request(self._last_t)
+            job, why = self.refits.request(self._last_t, self._parts)
         if job is None:
             return False, why
         return self.refits.start(job, self.parts())

@@ -295,7 +295,7 @@ class LearnerLoop:
         if L.refit_running() or L.version != self.sent_version or \
                 L.gains_seq != self.sent_gains:
             return False
-        if L.config.learning and (L.unheld or L.rebases.wanted()) and \
+        if L.config.learning and (L.unheld or L.rebases.wanted(L.parts())) and \
                 L.health.absorbs_rejected == self.rejected_at:
             return False                 # (a running rebase is still wanted until it ends)
         return self.ring is None or self.ring.pending(timeout=0) == 0
