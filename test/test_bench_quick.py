@@ -333,3 +333,7 @@ def test_coupled_wrist_quick(tmp_path):
         model, fit = numbers(r[3]), numbers(r[4])
         # two joints each; learned something (a model that learned nothing scores ~1)
         assert len(model) == 2 and len(fit) == 2 and all(0 < x < 1 for x in model + fit), r
+    # the reference fit finds the motor where it is (joints 5 and 6, on their sum; 0.06 / 0.04
+    # of the per-joint fit here) and none where it is not
+    assert rows[0][7] == '5+6' and max(numbers(rows[0][6])) < 0.5, rows[0]
+    assert rows[1][7] == 'none', rows[1]
