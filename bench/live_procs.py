@@ -36,20 +36,18 @@ import struct
 import sys
 import time
 
-from live_common import FINGER, panda_messages, stop_event, thread_cpu, TOPIC_IN, TOPIC_OUT, \
-    write_json
+from live_common import close, FINGER, on_diagnostics, panda_messages, play, ros_node, \
+    state_publisher, stop_event, thread_cpu, TOPIC_IN, TOPIC_OUT, write_json
 
 
 # ----------------------------------------------------------------------------- player
 def player(a) -> None:
+    """Publish the phases' (or the real stream's) messages at their deadlines; --out: lateness."""
     import numpy as np
     stop = stop_event()
     from dgp_ros.dynamics import ARM_JOINTS, simulate_arm
     names = list(ARM_JOINTS['panda']) + [FINGER]
     phases = [(float(r), float(s)) for r, s in (p.split(':') for p in a.phases.split(','))]
-    import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
     from array import array
     # the messages first (the publishing loop only stamps and publishes)
@@ -68,44 +66,17 @@ def player(a) -> None:
         msgs += panda_messages(d)
         offsets += [float(t) for t in d['t']]
         t_sim += secs
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('arm_live_player', context=ctx)
-    pub = node.create_publisher(JointState, TOPIC_IN,
-                                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    open(a.ready, 'w').write('ok')
-    deadline = time.monotonic() + a.wait
-    while pub.get_subscription_count() < a.min_subscribers and not stop.is_set():
-        if time.monotonic() > deadline:
-            break
-        time.sleep(0.05)
-    time.sleep(0.5)                                # discovery of the answers' direction too
-    t0_wall = time.time() + 0.05
-    t0_mono = time.monotonic() + 0.05
+    ctx, node = ros_node('arm_live_player')
+    pub = state_publisher(node, stop, a.min_subscribers, a.wait, a.ready)
     late = []
-    n = 0
-    for i, (m, off) in enumerate(zip(msgs, offsets)):
-        if stop.is_set():
-            break
-        dl = t0_mono + off
-        now = time.monotonic()
-        if dl > now:
-            time.sleep(dl - now)
-        stamp = t0_wall + off
-        m.header.stamp.sec = int(stamp)
-        m.header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
-        m.header.frame_id = str(i)
-        pub.publish(m)
-        late.append(time.monotonic() - dl)
-        n += 1
+    t0_wall, n = play(pub, zip(msgs, offsets), stop, lambda n, s: late.append(s))
     late = np.array(late) if late else np.zeros(1)
     write_json(a.out, {'published': n, 't0_wall': t0_wall, 'phases': phases,
                        'late_p50_ms': float(np.percentile(late, 50) * 1e3),
                        'late_p99_ms': float(np.percentile(late, 99) * 1e3),
                        'late_max_ms': float(late.max() * 1e3),
                        'seconds': float(offsets[n - 1]) if n else 0.0})
-    node.destroy_node()
-    ctx.try_shutdown()
+    close(ctx, node)
 
 
 #: the real Panda's log: its first REAL_SPLIT_S s are played (looped), the rest is held out
@@ -146,17 +117,12 @@ def _stamp_ns(raw: bytes) -> int:
 def listener(a) -> None:
     import numpy as np
     stop = stop_event()
-    import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
-    from diagnostic_msgs.msg import DiagnosticArray
     from rcl_interfaces.srv import GetParameters
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
     from dgp_ros.nodes.executor import set_batch_handler, WaitSetExecutor
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node(f'arm_live_{a.role}', context=ctx)
+    ctx, node = ros_node(f'arm_live_{a.role}')
     meas, ans, raws, diags = [], [], [], []
     probes = {'get_parameters': [], 'refit': []}
     first = {}
@@ -172,14 +138,8 @@ def listener(a) -> None:
             ans.append((_stamp_ns(r), t))
             raws.append(r)
 
-    def on_diag(msg):
-        t = now()
-        for st in msg.status:
-            if 'dgp_estimator' in st.name:
-                d = {kv.key: kv.value for kv in st.values}
-                d['message'] = st.message
-                d['t'] = t
-                diags.append(d)
+    def on_diag(st, d):
+        diags.append(dict(d, message=st.message, t=now()))
 
     if a.role == 'listener':
         # the prober (the same role without the streams) calls the services from a process
@@ -190,7 +150,7 @@ def listener(a) -> None:
         s_out = node.create_subscription(JointState, TOPIC_OUT, lambda m: None,
                                          QoSProfile(depth=1000), raw=True)
         set_batch_handler(s_out, on_ans, 1000)
-        node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
+        on_diagnostics(node, on_diag)
     clients = {}
     if a.probe_period > 0:
         clients['get_parameters'] = (node.create_client(GetParameters,
@@ -235,9 +195,7 @@ def listener(a) -> None:
              ans=np.array(ans, dtype=float).reshape(-1, 2), effort=efforts,
              velocity=velocities,
              diags=json.dumps(diags), probes=json.dumps(probes), first=json.dumps(first))
-    ex.shutdown()
-    node.destroy_node()
-    ctx.try_shutdown()
+    close(ctx, node, ex)
 
 
 # ----------------------------------------------------------------------------- estimator

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 
-from live_common import stop_event, thread_cpu, TOPIC_IN, write_json
+from live_common import close, ros_node, stop_event, thread_cpu, TOPIC_IN, write_json
 
 __all__ = ['relay']
 
@@ -30,14 +30,10 @@ def relay(a) -> None:
     docstring).
     """
     stop = stop_event()
-    import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('dgp_estimator', context=ctx)
+    ctx, node = ros_node('dgp_estimator')
     pub = node.create_publisher(JointState, '~/damping_force', 1024)
 
     def on_state(m):
@@ -66,9 +62,7 @@ def relay(a) -> None:
         ex.spin_once(timeout_sec=0.1)
     if a.cpu_out:
         write_json(a.cpu_out, {'threads': thread_cpu()})
-    ex.shutdown()
-    node.destroy_node()
-    ctx.try_shutdown()
+    close(ctx, node, ex)
 
 
 def _lean_relay(node, pub, ctx, stop, a) -> None:
@@ -96,5 +90,4 @@ def _lean_relay(node, pub, ctx, stop, a) -> None:
     if a.cpu_out:
         write_json(a.cpu_out, {'threads': thread_cpu()})
     h.__exit__(None, None, None)
-    node.destroy_node()
-    ctx.try_shutdown()
+    close(ctx, node)
