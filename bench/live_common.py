@@ -1,8 +1,8 @@
 """
 What the processes of bench/arm_live.py share: the topics and the small helpers of a role.
 
-``live_procs.py`` (player, listener, prober, estimator, hog) and ``live_relay.py`` (the relay)
-import it; neither imports the other's helpers, so the two stay apart.
+``live_procs.py`` (player, listener, prober, estimator, hog, relay), ``soak_live.py``'s roles
+and ``arm_live.py``'s killer import it.
 """
 from __future__ import annotations
 
