@@ -431,6 +431,18 @@ def fit_all_modes(kind: str, Q, T, modes: Optional[Sequence[str]] = None, **kw) 
     return out
 
 
+def combo_table(heads: Sequence[str], combos: Iterable, cells: Callable) -> str:
+    """Return a table of a row per (kind, mode) of ``combos``: its labels, then ``cells(c)``."""
+    return md_table(['model', 'passivity'] + list(heads),
+                    [[LABEL[c[0]], c[1]] + list(cells(c)) for c in combos])
+
+
+def cert_cells(cs: dict) -> list:
+    """Return the cells of a ``cert_summary``: method, holds, margin, scale, its time."""
+    return [cs['method'], 'yes' if cs['certified'] else 'no', fmt(cs['margin']),
+            fmt(cs['scale']), fmt_time(cs['seconds']) if np.isfinite(cs['seconds']) else '-']
+
+
 def cert_summary(model) -> dict:
     c = model.certificate()
     return {'certified': bool(c.certified), 'margin': float(c.margin), 'method': str(c.method),
