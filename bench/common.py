@@ -299,6 +299,13 @@ def md_table(headers: Sequence[str], rows: Iterable[Sequence]) -> str:
     return '\n'.join(out) + '\n'
 
 
+def timed(fn: Callable) -> tuple:
+    """Return (fn(), its wall time in s): one call, timed."""
+    t = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t
+
+
 def timeit(fn: Callable, repeat: int = 5, min_time: float = 0.0, number: int = 1) -> float:
     """
     Median wall time (s) of ``fn()`` over ``repeat`` runs of ``number`` calls each.
