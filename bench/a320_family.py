@@ -46,7 +46,7 @@ import sys
 import time
 import traceback
 
-from family_io import course_point, fmt, nmse, parse, parser, per_out, windows, write
+from family_io import course_point, course_text, fmt, nmse, parse, parser, per_out, windows, write
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -279,11 +279,7 @@ def report(results: list, tag: str, where: str, quick: bool, wall: float) -> str
                          f'{c["approach_speed_kts"]:.0f} kt')
     lines += ['', 'Elements over time (each change, polled every second of flight time), for '
               'the flights that fail a bar:', '']
-    for r in ok:
-        if not passes(r):
-            ch = '; '.join(f'{c["t"]:.0f} s: {c["elements"]} [{c["structure"]}]'
-                           for c in r['course'])
-            lines.append(f'- flight {r["flight"]}: {ch}')
+    lines += [f'- flight {r["flight"]}: {course_text(r["course"])}' for r in ok if not passes(r)]
     return '\n'.join(lines) + '\n'
 
 

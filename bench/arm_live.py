@@ -97,25 +97,17 @@ def _extra(p):
 def _killer(est_pid: int, sc: Scenario, t_start: float, seconds: float, ros_env: dict,
             out: list, stop: threading.Event) -> None:
     """SIGKILL the learner mid-refit ``sc.kills`` times; notes kill, fork and back times."""
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
     from std_srvs.srv import Trigger
-    from diagnostic_msgs.msg import DiagnosticArray
     from dgp_ros.nodes.executor import WaitSetExecutor
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO,
-               domain_id=int(ros_env['ROS_DOMAIN_ID']))
-    node = rclpy.create_node('arm_live_killer', context=ctx)
+    from live_common import close, on_diagnostics, ros_node
+    ctx, node = ros_node('arm_live_killer', domain_id=int(ros_env['ROS_DOMAIN_ID']))
     cli = node.create_client(Trigger, '/dgp_estimator/refit')
     last = {}
 
-    def on_diag(msg):
-        for st in msg.status:
-            if 'dgp_estimator' in st.name:
-                last.clear()
-                last.update({kv.key: kv.value for kv in st.values})
-                last['t'] = time.time()
-    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    def on_diag(st, values):
+        last.clear()
+        last.update(values, t=time.time())
+    on_diagnostics(node, on_diag, 10)
     ex = WaitSetExecutor(context=ctx)
     ex.add_node(node)
 
@@ -163,9 +155,7 @@ def _killer(est_pid: int, sc: Scenario, t_start: float, seconds: float, ros_env:
             rec['t_back'] = last['t'] - t_kill
         out.append(rec)
         spin_for(max(0.0, t_next - time.time()))
-    ex.shutdown()
-    node.destroy_node()
-    ctx.try_shutdown()
+    close(ctx, node, ex)
 
 
 def run_one(sc: Scenario, a, work: str, urdf: str, names: List[str]) -> dict:

@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 import common as C  # noqa: E402
+from common import timed  # noqa: E402
 from robot_arms_runs import make_data, residual_stream  # noqa: E402
 
 NAME = 'arm_offline'
@@ -57,12 +58,6 @@ def sk_fit(Q, T, restarts):
         gprs.append(GaussianProcessRegressor(k, normalize_y=True, random_state=0,
                                              n_restarts_optimizer=restarts).fit(Q, T[:, j]))
     return gprs
-
-
-def timed(fn):
-    t = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - t
 
 
 def neg_power(model, lo, hi, k, seed):

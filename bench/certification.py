@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import os
 import sys
-import time
 
 import numpy as np
 
 import common as C  # noqa: E402
+from common import timed  # noqa: E402
 
 NAME = 'certification'
 TITLE = 'Certified by default: accuracy on real data, proof time, violations'
@@ -51,12 +51,6 @@ def panda_dir(arg=None):
         if c and os.path.isfile(os.path.join(c, DATA_FILE)):
             return os.path.abspath(c)
     return None
-
-
-def timed(fn):
-    t = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - t
 
 
 def _chunks(X, k=50_000):

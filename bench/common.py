@@ -299,6 +299,13 @@ def md_table(headers: Sequence[str], rows: Iterable[Sequence]) -> str:
     return '\n'.join(out) + '\n'
 
 
+def timed(fn: Callable) -> tuple:
+    """Return (fn(), its wall time in s): one call, timed."""
+    t = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t
+
+
 def timeit(fn: Callable, repeat: int = 5, min_time: float = 0.0, number: int = 1) -> float:
     """
     Median wall time (s) of ``fn()`` over ``repeat`` runs of ``number`` calls each.
@@ -429,6 +436,18 @@ def fit_all_modes(kind: str, Q, T, modes: Optional[Sequence[str]] = None, **kw) 
         m = make_model(kind, passivity=mode, hyperparams=hp, **kw).fit(Q, T, optimize=False)
         out[mode] = (m, time.perf_counter() - t0)
     return out
+
+
+def combo_table(heads: Sequence[str], combos: Iterable, cells: Callable) -> str:
+    """Return a table of a row per (kind, mode) of ``combos``: its labels, then ``cells(c)``."""
+    return md_table(['model', 'passivity'] + list(heads),
+                    [[LABEL[c[0]], c[1]] + list(cells(c)) for c in combos])
+
+
+def cert_cells(cs: dict) -> list:
+    """Return the cells of a ``cert_summary``: method, holds, margin, scale, its time."""
+    return [cs['method'], 'yes' if cs['certified'] else 'no', fmt(cs['margin']),
+            fmt(cs['scale']), fmt_time(cs['seconds']) if np.isfinite(cs['seconds']) else '-']
 
 
 def cert_summary(model) -> dict:

@@ -40,6 +40,7 @@ import time
 import numpy as np
 
 import common as C  # noqa: E402
+from robot_family import ARMS  # noqa: E402,I100,I201
 
 NAME = 'cpp_export'
 TITLE = 'The frozen model as generated C++'
@@ -105,11 +106,8 @@ def learn(case: str, path: str, quick: bool) -> str:
             if d not in sys.path:
                 sys.path.insert(0, d)
             z = np.load(os.path.join(d, f'{case}_log_train.npz'), allow_pickle=False)
-            split = 7.5 if case == 'panda' else 10.0
+            _, _, names, split = ARMS[f'{case}_real']
             tr = z['t'] < split
-            names = [f'panda_joint{j}' for j in range(1, 8)] if case == 'panda' else \
-                ['shoulder_pan_joint', 'shoulder_lift_joint', 'elbow_joint', 'wrist_1_joint',
-                 'wrist_2_joint', 'wrist_3_joint']
             est = OnlineEstimator(EstimatorConfig(
                 refit_mode='sync', inverse_dynamics=f'python:{case}_rb:tau_rb', **extra))
             est.set_source('bag')

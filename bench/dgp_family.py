@@ -50,7 +50,7 @@ import sys
 import time
 import traceback
 
-from family_io import course_point, fmt, nmse, parse, parser, per_out, windows, write
+from family_io import course_point, course_text, fmt, nmse, parse, parser, per_out, windows, write
 import numpy as np
 
 RATE_HZ = 100.0
@@ -266,11 +266,7 @@ def report(results: list, tag: str, where: str, quick: bool, wall: float,
             f'{r["elements"]} | {r["structure"]} | {r["refits_ok"]}/{r["refits_failed"]} | '
             f'{r["wall_s"]:.0f} |')
     lines += ['', 'Elements over time (each change, polled every second of stream time):', '']
-    for r in results:
-        if 'course' in r:
-            ch = '; '.join(f'{c["t"]:.0f} s: {c["elements"]} [{c["structure"]}]'
-                           for c in r['course'])
-            lines.append(f'- {r["name"]}: {ch}')
+    lines += [f'- {r["name"]}: {course_text(r["course"])}' for r in results if 'course' in r]
     return '\n'.join(lines) + '\n'
 
 

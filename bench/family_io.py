@@ -72,6 +72,11 @@ def course_point(est, t: float, course: list) -> None:
                        'refits_ok': d.get('refits_ok')})
 
 
+def course_text(course: list) -> str:
+    """Return a ``course`` (``course_point``'s list) as text: 't s: elements [structure]; ...'."""
+    return '; '.join(f'{c["t"]:.0f} s: {c["elements"]} [{c["structure"]}]' for c in course)
+
+
 def jsonable(x):
     """Return ``x`` with numpy values as plain ones, non-finite floats as None (json.dump)."""
     if isinstance(x, dict):

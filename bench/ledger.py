@@ -116,10 +116,6 @@ LOOP_S = 3.0
 LOOP_ROBOT = 'panda'
 
 
-def _nmse(p, r):
-    return ((p - r) ** 2).mean(axis=0) / r.var(axis=0)
-
-
 def _windows(P, T, t, width_s: float = 1.0) -> np.ndarray:
     """NMSE per output of every 1 s window after the first second, over the flight's variance."""
     var = T.var(axis=0)
@@ -159,7 +155,7 @@ def a320_case(flight: dict, **params) -> dict:
     est.close()
     early = t <= t[0] + A320_EARLY_S
     W = _windows(P, T, t)
-    return {'early': _nmse(P[early], T[early]), 'whole': _nmse(P, T), 'wall_s': wall,
+    return {'early': C.nmse(P[early], T[early]), 'whole': C.nmse(P, T), 'wall_s': wall,
             'window_max': W.max(axis=0), 'window_at_s': W.argmax(axis=0) + 1.0,
             'flight_s': float(t[-1] - t[0]), 'structure': d.get('structure', ''),
             'refits_ok': d.get('refits_ok'), 'refits_failed': d.get('refits_failed'),
@@ -245,7 +241,7 @@ def panda_sim_case(duration_s: float = SIM_S, seed: int = 0, robot: str = 'panda
     wall = time.perf_counter() - t0
     est.close()
     held = np.arange(k, t.size, 10)
-    nm = _nmse(model.predict(d['qd_true'][held]), d['friction'][held])
+    nm = C.nmse(model.predict(d['qd_true'][held]), d['friction'][held])
     return {'nmse': nm, 'geo': float(np.exp(np.log(nm).mean())), 'worst': float(nm.max()),
             'wall_s': wall}
 

@@ -21,9 +21,10 @@ The processes of bench/arm_live.py, one role each: player, listener, prober, est
   message callback to the end of the last, and the callbacks' share, as JSON (``--cpu-out``):
   the same split for the code before and after a change.
 * ``hog``: one busy loop (another process keeping a core busy).
-* ``relay``: the floor (issue 33), a bare rclpy node answering each measurement with a
-  JointState on the estimator's answer topic; ``player --stream DIR`` plays the real Panda's
-  residual (``real_stream``) instead of the simulation.
+* ``relay``: the floor of bench/arm_floor.py (issue 33), a bare rclpy node answering each
+  measurement with a JointState on the estimator's answer topic (``DGP_RELAY``: which relay).
+  ``player --stream DIR`` plays the real Panda's residual (``real_stream``) instead of the
+  simulation.
 
 Each writes its results when it gets SIGINT or SIGTERM (``--out``), and ``--ready`` once set up.
 """
@@ -36,20 +37,18 @@ import struct
 import sys
 import time
 
-from live_common import FINGER, panda_messages, stop_event, thread_cpu, TOPIC_IN, TOPIC_OUT, \
-    write_json
+from live_common import close, FINGER, on_diagnostics, panda_messages, play, ros_node, \
+    state_publisher, stop_event, thread_cpu, TOPIC_IN, TOPIC_OUT, write_json
 
 
 # ----------------------------------------------------------------------------- player
 def player(a) -> None:
+    """Publish the phases' (or the real stream's) messages at their deadlines; --out: lateness."""
     import numpy as np
     stop = stop_event()
     from dgp_ros.dynamics import ARM_JOINTS, simulate_arm
     names = list(ARM_JOINTS['panda']) + [FINGER]
     phases = [(float(r), float(s)) for r, s in (p.split(':') for p in a.phases.split(','))]
-    import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
     from array import array
     # the messages first (the publishing loop only stamps and publishes)
@@ -68,44 +67,17 @@ def player(a) -> None:
         msgs += panda_messages(d)
         offsets += [float(t) for t in d['t']]
         t_sim += secs
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('arm_live_player', context=ctx)
-    pub = node.create_publisher(JointState, TOPIC_IN,
-                                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    open(a.ready, 'w').write('ok')
-    deadline = time.monotonic() + a.wait
-    while pub.get_subscription_count() < a.min_subscribers and not stop.is_set():
-        if time.monotonic() > deadline:
-            break
-        time.sleep(0.05)
-    time.sleep(0.5)                                # discovery of the answers' direction too
-    t0_wall = time.time() + 0.05
-    t0_mono = time.monotonic() + 0.05
+    ctx, node = ros_node('arm_live_player')
+    pub = state_publisher(node, stop, a.min_subscribers, a.wait, a.ready)
     late = []
-    n = 0
-    for i, (m, off) in enumerate(zip(msgs, offsets)):
-        if stop.is_set():
-            break
-        dl = t0_mono + off
-        now = time.monotonic()
-        if dl > now:
-            time.sleep(dl - now)
-        stamp = t0_wall + off
-        m.header.stamp.sec = int(stamp)
-        m.header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
-        m.header.frame_id = str(i)
-        pub.publish(m)
-        late.append(time.monotonic() - dl)
-        n += 1
+    t0_wall, n = play(pub, zip(msgs, offsets), stop, lambda n, s: late.append(s))
     late = np.array(late) if late else np.zeros(1)
     write_json(a.out, {'published': n, 't0_wall': t0_wall, 'phases': phases,
                        'late_p50_ms': float(np.percentile(late, 50) * 1e3),
                        'late_p99_ms': float(np.percentile(late, 99) * 1e3),
                        'late_max_ms': float(late.max() * 1e3),
                        'seconds': float(offsets[n - 1]) if n else 0.0})
-    node.destroy_node()
-    ctx.try_shutdown()
+    close(ctx, node)
 
 
 #: the real Panda's log: its first REAL_SPLIT_S s are played (looped), the rest is held out
@@ -146,17 +118,12 @@ def _stamp_ns(raw: bytes) -> int:
 def listener(a) -> None:
     import numpy as np
     stop = stop_event()
-    import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
-    from diagnostic_msgs.msg import DiagnosticArray
     from rcl_interfaces.srv import GetParameters
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
     from dgp_ros.nodes.executor import set_batch_handler, WaitSetExecutor
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node(f'arm_live_{a.role}', context=ctx)
+    ctx, node = ros_node(f'arm_live_{a.role}')
     meas, ans, raws, diags = [], [], [], []
     probes = {'get_parameters': [], 'refit': []}
     first = {}
@@ -172,14 +139,8 @@ def listener(a) -> None:
             ans.append((_stamp_ns(r), t))
             raws.append(r)
 
-    def on_diag(msg):
-        t = now()
-        for st in msg.status:
-            if 'dgp_estimator' in st.name:
-                d = {kv.key: kv.value for kv in st.values}
-                d['message'] = st.message
-                d['t'] = t
-                diags.append(d)
+    def on_diag(st, d):
+        diags.append(dict(d, message=st.message, t=now()))
 
     if a.role == 'listener':
         # the prober (the same role without the streams) calls the services from a process
@@ -190,7 +151,7 @@ def listener(a) -> None:
         s_out = node.create_subscription(JointState, TOPIC_OUT, lambda m: None,
                                          QoSProfile(depth=1000), raw=True)
         set_batch_handler(s_out, on_ans, 1000)
-        node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
+        on_diagnostics(node, on_diag)
     clients = {}
     if a.probe_period > 0:
         clients['get_parameters'] = (node.create_client(GetParameters,
@@ -235,9 +196,7 @@ def listener(a) -> None:
              ans=np.array(ans, dtype=float).reshape(-1, 2), effort=efforts,
              velocity=velocities,
              diags=json.dumps(diags), probes=json.dumps(probes), first=json.dumps(first))
-    ex.shutdown()
-    node.destroy_node()
-    ctx.try_shutdown()
+    close(ctx, node, ex)
 
 
 # ----------------------------------------------------------------------------- estimator
@@ -376,6 +335,84 @@ def estimator(a, ros_args) -> int:
     return code
 
 
+# ----------------------------------------------------------------------------- relay (the floor)
+def relay(a) -> None:
+    """
+    Answer each JointState with a JointState from a bare rclpy node: the floor.
+
+    Subscribes like the estimator (best effort, depth 1000), publishes on its answer topic (depth
+    1024, as the estimator) header, names, velocity and effort of each measurement, spun by rclpy's
+    own SingleThreadedExecutor: what any rclpy node pays per message, with nothing of ours
+    ``DGP_RELAY`` chooses which: '' (default) message objects in and out, rclpy's
+    SingleThreadedExecutor (``DGP_EXECUTOR=waitset``: the node's wait-set loop instead); 'raw':
+    the message's bytes in and out unchanged (``raw=True``; either executor); 'lean': the bytes
+    in and out from a loop over a wait set of one subscription (``_lean_relay``: no executor,
+    no services served), the least an rclpy process can spend per message.
+    """
+    stop = stop_event()
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    ctx, node = ros_node('dgp_estimator')
+    pub = node.create_publisher(JointState, '~/damping_force', 1024)
+
+    def on_state(m):
+        out = JointState()
+        out.header = m.header
+        out.name = m.name
+        out.velocity = m.velocity
+        out.effort = m.effort
+        pub.publish(out)
+
+    kind = os.environ.get('DGP_RELAY', '')
+    if kind == 'lean':
+        _lean_relay(node, pub, ctx, stop, a)
+        return
+    raw = kind == 'raw'                 # the bytes in and out, unchanged
+    node.create_subscription(JointState, TOPIC_IN, pub.publish if raw else on_state,
+                             QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT),
+                             raw=raw)
+    if os.environ.get('DGP_EXECUTOR') == 'waitset':      # the node's own loop instead
+        from dgp_ros.nodes.executor import WaitSetExecutor
+        ex = WaitSetExecutor(context=ctx)
+    else:
+        ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    while not stop.is_set():
+        ex.spin_once(timeout_sec=0.1)
+    if a.cpu_out:
+        write_json(a.cpu_out, {'threads': thread_cpu()})
+    close(ctx, node, ex)
+
+
+def _lean_relay(node, pub, ctx, stop, a) -> None:
+    """Take every raw message waiting after each wait, publish it as it came (``lean``)."""
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    sub = node.create_subscription(
+        JointState, TOPIC_IN, lambda m: None,
+        QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT), raw=True)
+    h = sub.handle
+    h.__enter__()
+    ws = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, ctx.handle)
+    inner = pub.handle
+    take = h.take_message
+    while not stop.is_set():
+        ws.clear_entities()
+        ws.add_subscription(h)
+        ws.wait(100_000_000)
+        while True:
+            got = take(JointState, True)
+            if got is None:
+                break
+            inner.publish_raw(got[0])
+    if a.cpu_out:
+        write_json(a.cpu_out, {'threads': thread_cpu()})
+    h.__exit__(None, None, None)
+    close(ctx, node)
+
+
 def hog(a) -> None:
     while True:
         pass
@@ -410,7 +447,6 @@ def main() -> int:
     elif a.role == 'estimator':
         return estimator(a, ros)
     elif a.role == 'relay':
-        from live_relay import relay
         relay(a)
     else:
         hog(a)

@@ -103,21 +103,12 @@ def section_a(a, A, wall):
                 if a.quick else 'Every row is `make_model(kind, passivity=mode).fit(Q, T)` '
                 '(hyper-parameter optimization in that mode).') + '\n')
     L.append('### NMSE per output (whole trajectory; held-out validation in brackets)\n')
-    rows = []
-    for c in COMBOS:
-        s = st[c]
-        rows.append([C.LABEL[c[0]], c[1]] +
-                    [f'{C.fmt(s["nmse"][j])} ({C.fmt(s["nmse_val"][j])})' for j in range(3)] +
-                    [C.fmt_time(s['fit_s'])])
-    L.append(C.md_table(['model', 'passivity'] + [f'NMSE {o}' for o in OUT_NAMES] +
-                        ['fit time'], rows))
+    L.append(C.combo_table([f'NMSE {o}' for o in OUT_NAMES] + ['fit time'], COMBOS, lambda c: [
+        f'{C.fmt(st[c]["nmse"][j])} ({C.fmt(st[c]["nmse_val"][j])})' for j in range(3)] +
+        [C.fmt_time(st[c]['fit_s'])]))
     L.append("### Error / mass, mean and variance per output (the paper's Table 1 metric)\n")
-    rows = []
-    for c in COMBOS:
-        s = st[c]
-        rows.append([C.LABEL[c[0]], c[1]] +
-                    [f'{C.fmt(s["mean"][j])} / {C.fmt(s["var"][j])}' for j in range(3)])
-    L.append(C.md_table(['model', 'passivity'] + [f'{o}: mean / var' for o in OUT_NAMES], rows))
+    L.append(C.combo_table([f'{o}: mean / var' for o in OUT_NAMES], COMBOS, lambda c: [
+        f'{C.fmt(st[c]["mean"][j])} / {C.fmt(st[c]["var"][j])}' for j in range(3)]))
     L.append("### Beside the paper's Table 1 (lateral force)\n")
     L.append('**Their aircraft model is not ours.** The paper identifies a different simulated '
              'aircraft and approach; ours is the A320 shipped with JSBSim flying our approach '
@@ -212,21 +203,14 @@ def section_b(a, B, wall):
              'hyper-parameters.\n')
     for j, o in enumerate(OUT_NAMES):
         L.append(f'### NMSE {o}\n')
-        rows = []
-        for c in COMBOS:
-            rows.append([C.LABEL[c[0]], c[1]] +
-                        [C.fmt(np.median([r[j] for r in res[c][n]])) for n in ns])
-        L.append(C.md_table(['model', 'passivity'] + [f'n={n}' for n in ns], rows))
+        L.append(C.combo_table([f'n={n}' for n in ns], COMBOS, lambda c: [
+            C.fmt(np.median([r[j] for r in res[c][n]])) for n in ns]))
     # slopes of the unconstrained models (data efficiency exponent)
-    rows = []
-    for c in COMBOS:
-        if c[1] not in ('none', 'certified'):
-            continue
-        sl = [C.loglog_slope(ns, [np.median([r[j] for r in res[c][n]]) for n in ns])
-              for j in range(3)]
-        rows.append([C.LABEL[c[0]], c[1]] + [C.fmt(s) for s in sl])
     L.append('Log-log slope of NMSE vs n (over all n):\n')
-    L.append(C.md_table(['model', 'passivity'] + [f'slope {o}' for o in OUT_NAMES], rows))
+    L.append(C.combo_table([f'slope {o}' for o in OUT_NAMES],
+                           [c for c in COMBOS if c[1] in ('none', 'certified')], lambda c: [
+        C.fmt(C.loglog_slope(ns, [np.median([r[j] for r in res[c][n]]) for n in ns]))
+        for j in range(3)]))
     plt = C.plt()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5), sharex=True)
     for j, ax in enumerate(axes):
@@ -298,35 +282,23 @@ def section_c(a, A, B, Cc, wall):
              f'`min cos` is the smallest `qd^T tau_hat / (|qd| |tau_hat|)` seen. The true '
              f'frozen-state aircraft has {Cc["truth_neg"]} negative-power points of {Cc["kt"]} '
              f'inside the box.\n')
-    rows = []
-    for c in COMBOS:
-        v = Cc['traj'][c]
-        cs = A['stats'][c]['cert']
-        rows.append([C.LABEL[c[0]], c[1], v[0], v[1], v[2], v[3],
-                     C.fmt(v[0] / Cc['k']), C.fmt(v[1] / Cc['k']), C.fmt(v[4]), C.fmt(v[5]),
-                     cs['method'], 'yes' if cs['certified'] else 'no', C.fmt(cs['margin']),
-                     C.fmt(cs['scale']),
-                     C.fmt_time(cs['seconds']) if np.isfinite(cs['seconds']) else '-'])
+    cert = ['certificate', 'holds', 'margin', 'corr. scale', 'cert. time']
+    v = Cc['traj']
     L.append('### Trajectory-protocol models (n = 50)\n')
-    L.append(C.md_table(['model', 'passivity', 'neg inside', 'neg far', '>tol in', '>tol far',
-                         'frac in', 'frac far', 'min cos in', 'min cos far', 'certificate',
-                         'holds', 'margin', 'corr. scale', 'cert. time'], rows))
+    L.append(C.combo_table(
+        ['neg inside', 'neg far', '>tol in', '>tol far', 'frac in', 'frac far', 'min cos in',
+         'min cos far'] + cert, COMBOS, lambda c: list(v[c][:4]) + [
+            C.fmt(v[c][0] / Cc['k']), C.fmt(v[c][1] / Cc['k']), C.fmt(v[c][4]),
+            C.fmt(v[c][5])] + C.cert_cells(A['stats'][c]['cert'])))
     if Cc['vol']:
         kb = Cc['vol']['k']
         n_last = B['ns'][-1]
-        rows = []
-        for c in COMBOS:
-            v = Cc['vol']['v'][c]
-            cs = C.cert_summary(B['models'][c][0])
-            rows.append([C.LABEL[c[0]], c[1], v[0], v[1], v[2], v[3], C.fmt(v[4]),
-                         C.fmt(v[5]), cs['method'], 'yes' if cs['certified'] else 'no',
-                         C.fmt(cs['margin']), C.fmt(cs['scale']),
-                         C.fmt_time(cs['seconds']) if np.isfinite(cs['seconds']) else '-'])
+        vv = Cc['vol']['v']
         L.append(f'### Volume-protocol models (n = {n_last}, seed 0; {kb} points inside the '
                  f'volume, {kb} far outside)\n')
-        L.append(C.md_table(['model', 'passivity', 'neg inside', 'neg far', '>tol in',
-                             '>tol far', 'min cos in', 'min cos far', 'certificate', 'holds',
-                             'margin', 'corr. scale', 'cert. time'], rows))
+        L.append(C.combo_table(['neg inside', 'neg far', '>tol in', '>tol far', 'min cos in',
+                                'min cos far'] + cert, COMBOS, lambda c: list(vv[c][:4]) + [
+            C.fmt(vv[c][4]), C.fmt(vv[c][5])] + C.cert_cells(C.cert_summary(B['models'][c][0]))))
     # dissipated-power distributions along the trajectory
     plt = C.plt()
     Q, T = A['Q'], A['T']

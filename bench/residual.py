@@ -42,10 +42,6 @@ A320_SETTINGS = (('defaults (prior=auto)', {}),
                  ('prior=friction bias=false', {'prior': 'friction', 'bias': False}))
 
 
-def _nmse(p, r):
-    return ((p - r) ** 2).mean(0) / r.var(0)
-
-
 def panda_part(a, path):
     """Replay the training bag, score the saved model and every fixed structure."""
     from dgp_ros.dynamics import AccelFilter, FrictionResidual
@@ -77,14 +73,14 @@ def panda_part(a, path):
                            if 'Warning' in ln or 'Traceback' in ln]
         m = load_model(model_path)
     P = m.predict_residual(q=q[te], qd=qd[te])
-    out['raw'], out['lp'] = _nmse(P, ref), _nmse(P, lp)
+    out['raw'], out['lp'] = C.nmse(P, ref), C.nmse(P, lp)
     corr = getattr(m, 'correction_', None)
     out['basis'] = '' if corr is None or corr.basis is None else corr.basis.source
     sig = np.column_stack([predict_sigmoid(fit_sigmoid(qd[tr, j], z['tau_friction_offline'][tr, j],
                                                        fit_cv(qd[tr, j],
                                                               z['tau_friction_offline'][tr, j])),
                                            qd[te, j]) for j in range(7)])
-    out['sig_raw'], out['sig_lp'] = _nmse(sig, ref), _nmse(sig, lp)
+    out['sig_raw'], out['sig_lp'] = C.nmse(sig, ref), C.nmse(sig, lp)
     # negative power of predict: 10^5 random velocities inside and 10x outside the data box
     rng = np.random.default_rng(0)
     k = 20000 if a.quick else 100000
@@ -112,7 +108,7 @@ def panda_part(a, path):
     for cand in hist.candidates():
         f = hist.fit(*cand)
         p = f.friction_mean().force(qd[te]) + f.correction()(q[te])
-        rows.append((cand, sel.scores.get(cand, float('nan')), _nmse(p, ref), _nmse(p, lp)))
+        rows.append((cand, sel.scores.get(cand, float('nan')), C.nmse(p, ref), C.nmse(p, lp)))
     # offsets may be chosen joint by joint ((N,) bools): a candidate carries one bool for all
     offs = np.atleast_1d(np.asarray(sel.offsets, bool))
     out['candidates'], out['selected'] = rows, (sel.family, bool(offs.any()), sel.conservative)

@@ -293,16 +293,21 @@ def main(argv=None) -> int:
         keys = [(r['kind'], r['prior'], r['bias']) for r in results[(robots[0], seeds[0])]['rows']]
         score = {}
         cells = {}
+
+        def per_seed(robot, pick):
+            """Geometric-mean NMSE* of pick(run) per seed of ``robot`` (above the noise)."""
+            out = []
+            for seed in seeds:
+                D = results[(robot, seed)]
+                out.append(gmean(pick(D)[D['above_noise'] if D['above_noise'].any()
+                                         else slice(None)]))
+            return out
         for key in keys:
             cells[key] = []
             vals = []
             for robot in robots:
-                g = []
-                for seed in seeds:
-                    D = results[(robot, seed)]
-                    r = next(x for x in D['rows'] if (x['kind'], x['prior'], x['bias']) == key)
-                    crit = D['above_noise'] if D['above_noise'].any() else slice(None)
-                    g.append(gmean(r['nmse'][crit]))
+                g = per_seed(robot, lambda D: next(x for x in D['rows'] if (
+                    x['kind'], x['prior'], x['bias']) == key)['nmse'])
                 cells[key].append(' / '.join(C.fmt(x, 2) for x in g))
                 vals += g
             v = np.asarray(vals, float)
@@ -319,15 +324,8 @@ def main(argv=None) -> int:
                         ('Coulomb-viscous LS, stream', 'nmse_cv'),
                         ('sigmoid (Makkar) LS, final buffer', 'nmse_sg_buf'),
                         ('Coulomb-viscous LS, final buffer', 'nmse_cv_buf')):
-            c = []
-            for robot in robots:
-                g = []
-                for seed in seeds:
-                    D = results[(robot, seed)]
-                    crit = D['above_noise'] if D['above_noise'].any() else slice(None)
-                    g.append(gmean(D[fld][crit]))
-                c.append(' / '.join(C.fmt(x, 2) for x in g))
-            rows.append([nm, '', 'fitted'] + c + [''])
+            rows.append([nm, '', 'fitted'] + [' / '.join(C.fmt(
+                x, 2) for x in per_seed(robot, lambda D: D[fld])) for robot in robots] + [''])
         L.append(C.md_table(hdr, rows))
         results['_ranked'] = ranked
 

@@ -49,15 +49,14 @@ import numpy as np
 
 import common as C  # noqa: E402
 
+from dgp_ros.dynamics import ARM_JOINTS  # noqa: E402
+
 NAME = 'robot_family'
 TITLE = "The robot family with the node's defaults: real arms held out"
 #: the shared real logs: file, plugin module, joint names, the learning split (s)
 ARMS = {
-    'panda_real': ('panda_log_train.npz', 'panda_rb',
-                   [f'panda_joint{j}' for j in range(1, 8)], 7.5),
-    'ur10_real': ('ur10_log_train.npz', 'ur10_rb',
-                  ['shoulder_pan_joint', 'shoulder_lift_joint', 'elbow_joint', 'wrist_1_joint',
-                   'wrist_2_joint', 'wrist_3_joint'], 10.0),
+    'panda_real': ('panda_log_train.npz', 'panda_rb', list(ARM_JOINTS['panda']), 7.5),
+    'ur10_real': ('ur10_log_train.npz', 'ur10_rb', list(ARM_JOINTS['ur5']), 10.0),  # UR names
 }
 #: the family: (label, arm, stream rate in Hz or None for the log's own)
 CASES = (

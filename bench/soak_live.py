@@ -37,8 +37,8 @@ import numpy as np
 import common as C  # noqa: E402
 from cpu_watch import learner_pids  # noqa: E402
 
-from live_common import (panda_messages, stop_event, TOPIC_IN, TOPIC_OUT,  # noqa: E402,I100
-                         write_json)
+from live_common import (close, on_diagnostics, panda_messages, play, ros_node,  # noqa: E402,I100
+                         state_publisher, stop_event, TOPIC_OUT, write_json)
 
 SECTION = 'soak_live'
 TITLE = 'An hour at 1 kHz: memory against time'
@@ -63,67 +63,41 @@ def _extra(p):
 
 # ----------------------------------------------------------------------------- player
 def player(a) -> None:
+    """Publish the simulated Panda's task cycle, looped, for --duration s; --file: lateness."""
     stop = stop_event()
-    import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
-    from sensor_msgs.msg import JointState
     from dgp_ros.dynamics import simulate_arm
     d = simulate_arm('panda', CYCLE_S, rate_hz=a.rate, seed=7)
     msgs = panda_messages(d)
     offs = d['t'] - d['t'][0]
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('soak_player', context=ctx)
-    pub = node.create_publisher(JointState, TOPIC_IN,
-                                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    deadline = time.monotonic() + 90.0          # the node subscribes (the listener does not)
-    while pub.get_subscription_count() < 1 and time.monotonic() < deadline and \
-            not stop.is_set():
-        time.sleep(0.05)
-    time.sleep(0.5)
-    t0_wall, t0_mono = time.time() + 0.05, time.monotonic() + 0.05
-    n, late_max, late_1ms = 0, 0.0, 0
-    while not stop.is_set():
-        k, i = divmod(n, len(msgs))
-        off = k * CYCLE_S + offs[i]
-        if off > a.duration:
-            break
-        dl = t0_mono + off
-        now = time.monotonic()
-        if dl > now:
-            time.sleep(dl - now)
-        stamp = t0_wall + off
-        m = msgs[i]
-        m.header.stamp.sec = int(stamp)
-        m.header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
-        m.header.frame_id = str(n)
-        pub.publish(m)
-        late = time.monotonic() - dl
-        late_max, late_1ms = max(late_max, late), late_1ms + int(late > 1e-3)
-        n += 1
-        if n % 10000 == 0:
-            write_json(a.file, {'published': n, 'late_max_ms': late_max * 1e3,
-                                'late_over_1ms': late_1ms, 'done': False})
-    write_json(a.file, {'published': n, 'late_max_ms': late_max * 1e3,
-                        'late_over_1ms': late_1ms, 'done': True})
-    node.destroy_node()
-    ctx.try_shutdown()
+    ctx, node = ros_node('soak_player')
+    pub = state_publisher(node, stop)          # the node subscribes (the listener does not)
+    late = {'max': 0.0, 'over_1ms': 0}
+
+    def items():
+        for k in range(int(a.duration // CYCLE_S) + 1):
+            for m, off in zip(msgs, k * CYCLE_S + offs):
+                if off > a.duration:
+                    return
+                yield m, off
+
+    def noted(n, s, done=False):
+        late['max'], late['over_1ms'] = max(late['max'], s), late['over_1ms'] + int(s > 1e-3)
+        if done or n % 10000 == 0:
+            write_json(a.file, {'published': n, 'late_max_ms': late['max'] * 1e3,
+                                'late_over_1ms': late['over_1ms'], 'done': done})
+    _, n = play(pub, items(), stop, noted)
+    noted(n, 0.0, True)
+    close(ctx, node)
 
 
 # ----------------------------------------------------------------------------- listener
 def listener(a) -> None:
     stop = stop_event()
-    import rclpy
     from rclpy.qos import QoSProfile
     from rclpy.serialization import deserialize_message
-    from rclpy.signals import SignalHandlerOptions
-    from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import JointState
     from dgp_ros.nodes.executor import set_batch_handler, WaitSetExecutor
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('soak_listener', context=ctx)
+    ctx, node = ros_node('soak_listener')
     st = {'answers': 0, 'negative_power': 0, 'non_finite': 0, 'max_gap_s': 0.0,
           'diagnostics': 0, 'warn_periods': 0, 'last_diag': {}, 'warn_kinds': {},
           'timeline': []}
@@ -146,27 +120,23 @@ def listener(a) -> None:
         last[0] = now
         st['answers'] += len(raws)
 
-    def on_diag(msg):
-        for s in msg.status:
-            if 'dgp_estimator' in s.name:
-                st['diagnostics'] += 1
-                level = s.level[0] if isinstance(s.level, bytes) else int(s.level)
-                st['warn_periods'] += int(level == 1)
-                kinds = st['warn_kinds']
-                if level == 1 and (len(kinds) < 20 or s.message[:50] in kinds):
-                    kinds[s.message[:50]] = kinds.get(s.message[:50], 0) + 1
-                st['last_diag'] = dict({kv.key: kv.value for kv in s.values},
-                                       message=s.message, level=level)
-                tl = st['timeline']
-                if not tl or time.time() - tl[-1]['t'] >= a.sample_s:
-                    # what the learner serves, a period at a time (bounded: one per period)
-                    d = st['last_diag']
-                    tl.append(dict({k: d.get(k) for k in TIMELINE_KEYS}, t=time.time()))
+    def on_diag(s, values):
+        st['diagnostics'] += 1
+        level = s.level[0] if isinstance(s.level, bytes) else int(s.level)
+        st['warn_periods'] += int(level == 1)
+        kinds = st['warn_kinds']
+        if level == 1 and (len(kinds) < 20 or s.message[:50] in kinds):
+            kinds[s.message[:50]] = kinds.get(s.message[:50], 0) + 1
+        st['last_diag'] = d = dict(values, message=s.message, level=level)
+        tl = st['timeline']
+        if not tl or time.time() - tl[-1]['t'] >= a.sample_s:
+            # what the learner serves, a period at a time (bounded: one per period)
+            tl.append(dict({k: d.get(k) for k in TIMELINE_KEYS}, t=time.time()))
 
     sub = node.create_subscription(JointState, TOPIC_OUT, lambda m: None,
                                    QoSProfile(depth=1000), raw=True)
     set_batch_handler(sub, on_ans, 1000)
-    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
+    on_diagnostics(node, on_diag)
     ex = WaitSetExecutor(context=ctx)
     ex.add_node(node)
     t_write = time.monotonic()
@@ -176,9 +146,7 @@ def listener(a) -> None:
             write_json(a.file, dict(st, age_hist=hist.tolist()))
             t_write = time.monotonic()
     write_json(a.file, dict(st, age_hist=hist.tolist(), done=True))
-    ex.shutdown()
-    node.destroy_node()
-    ctx.try_shutdown()
+    close(ctx, node, ex)
 
 
 # ----------------------------------------------------------------------------- the run

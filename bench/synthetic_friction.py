@@ -145,15 +145,9 @@ def main(argv=None) -> int:
         '(passivity none) and every '
         'mode is fitted at those hyper-parameters.\n')
     lines.append('### NMSE per joint (median over seeds), joint 1 / joint 2\n')
-    hdr = ['model', 'passivity'] + [f'n={n}' for n in ns]
-    rows = []
-    for c in combos:
-        r = [C.LABEL[c[0]], c[1]]
-        for n in ns:
-            med = np.median(np.array(res[c][n]), axis=0)
-            r.append(f'{C.fmt(med[0])} / {C.fmt(med[1])}')
-        rows.append(r)
-    lines.append(C.md_table(hdr, rows))
+    med = {(c, n): np.median(np.array(res[c][n]), axis=0) for c in combos for n in ns}
+    lines.append(C.combo_table([f'n={n}' for n in ns], combos, lambda c: [
+        f'{C.fmt(med[c, n][0])} / {C.fmt(med[c, n][1])}' for n in ns]))
     lines.append(f'![NMSE vs n]({C.rel(p1, a.out)})\n')
     nb = n_pass
     lines.append(f'### Passivity at n = {ns[-1]} ({nb} fitted model(s) per row, {k_pass} random '
@@ -162,19 +156,18 @@ def main(argv=None) -> int:
                  '`-1e-12 |qd| |tau_hat|` (beyond round-off). Certificate time is `certificate()'
                  '.details["seconds"]` (median), the correction scale the factor the certificate '
                  'applied to the GP correction (1 = untouched).\n')
-    hdr = ['model', 'passivity', 'neg inside', 'neg far', 'neg>tol inside', 'neg>tol far',
-           'fraction neg (in / far)', 'certificate holds', 'corr. scale', 'cert. time']
-    rows = []
     tot = nb * k_pass
-    for c in combos:
+
+    def row(c):
         v = viol[c]
         ct = [x for n in ns for x in cert[c][n] if np.isfinite(x)]
-        sc = scales[c][ns[-1]]
-        rows.append([C.LABEL[c[0]], c[1], v[0], v[1], v[2], v[3],
-                     f'{C.fmt(v[0] / tot)} / {C.fmt(v[1] / tot)}',
-                     f'{sum(certified_flags[c])}/{len(certified_flags[c])}',
-                     C.fmt(np.median(sc)), C.fmt_time(np.median(ct)) if ct else '-'])
-    lines.append(C.md_table(hdr, rows))
+        return list(v[:4]) + [f'{C.fmt(v[0] / tot)} / {C.fmt(v[1] / tot)}',
+                              f'{sum(certified_flags[c])}/{len(certified_flags[c])}',
+                              C.fmt(np.median(scales[c][ns[-1]])),
+                              C.fmt_time(np.median(ct)) if ct else '-']
+    lines.append(C.combo_table(['neg inside', 'neg far', 'neg>tol inside', 'neg>tol far',
+                                'fraction neg (in / far)', 'certificate holds', 'corr. scale',
+                                'cert. time'], combos, row))
     C.write_section(a.out, NAME, '\n'.join(lines))
     C.log(f'{NAME}: wrote section and {p1} in {wall:.1f} s')
     return 0
