@@ -397,7 +397,8 @@ class EstimatorNode(Node):
         try:
             self.estimator.wait_for_refit(2.0)
             if self.estimator.config.model_path and self.estimator.trained:
-                path = self.estimator.save()
+                # no catching up first: ros2 launch sends SIGTERM 5 s after SIGINT
+                path = self.estimator.save(learn_waiting=False)
                 self.get_logger().info(f'model saved to {path}')
             elif self.estimator.config.model_path:
                 self.get_logger().warning(

@@ -475,8 +475,8 @@ class Learner:
         self.refits.discard()                   # a running refit or rebase is discarded
         self.switch.stop(self.served.model is not None)
 
-    def save(self, path: Optional[str] = None) -> str:
-        """Save the served model atomically to ``path`` (default ``model_path``; ``files``)."""
+    def save(self, path: Optional[str] = None, learn_waiting: bool = True) -> str:
+        """Save the served model atomically to ``path`` (``files``; nothing waits in line)."""
         return files.save(self.parts(), path)
 
     def adopt(self, model, source: str = '') -> None:

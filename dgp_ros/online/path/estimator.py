@@ -427,9 +427,14 @@ class OnlineEstimator:
                 self.health = health
         return what
 
-    def save(self, path: Optional[str] = None) -> str:
-        """Save the current model atomically to ``path`` (default ``model_path``); returns it."""
-        return self._learner.save(path)
+    def save(self, path: Optional[str] = None, learn_waiting: bool = True) -> str:
+        """
+        Save the current model atomically to ``path`` (default ``model_path``); returns it.
+
+        ``learn_waiting``: first learn the samples still on their way to a learner process
+        (False at a shutdown: what it learned by then).
+        """
+        return self._learner.save(path, learn_waiting=learn_waiting)
 
     def set_learning(self, on: bool) -> str:
         """

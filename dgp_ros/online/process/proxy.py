@@ -361,10 +361,17 @@ class LearnerProcess:
         what, self.joint_names_, self.needs_position = what
         return what
 
-    def save(self, path: Optional[str] = None, timeout: Optional[float] = None) -> str:
-        """Save in the child; if it cannot (dead, no answer), save the last snapshot here."""
+    def save(self, path: Optional[str] = None, timeout: Optional[float] = None,
+             learn_waiting: bool = True) -> str:
+        """
+        Save in the child; if it cannot (dead, no answer), save the last snapshot here.
+
+        ``learn_waiting``: the saved model learns every row sent before the save (the child
+        catches up for up to ``LearnerLoop.SAVE_DRAIN_S``); False: what it learned by now (a
+        shutdown, whose time a launch file bounds).
+        """
         path = path or self.config.model_path
-        ring = self._ring           # the saved model learns every row sent before the save
+        ring = self._ring if learn_waiting else None
         if ring is not None:
             ring.flush(timeout=1.0)             # the rows the learner has not seen yet
         ok, what = self._call('save', path, None if ring is None else ring.mark(),
