@@ -92,22 +92,25 @@ def transmission_fit(Qd, R, V, learned_s: float) -> tuple:
     folds_h = [(np.flatnonzero(half), np.flatnonzero(~half)),
                (np.flatnonzero(~half), np.flatnonzero(half))]
 
-    def errors(pair, splits):
+    splits_of = (folds, folds_h)
+    # each joint's own fit scored once per set of splits (every pair with that joint reads it)
+    own_err = [np.array([sum(np.sum((_own(Qd[te, j]) @ own_fit(Qd[tr], R[tr], j) - R[te, j]) ** 2)
+                             for tr, te in splits) for j in range(N)]) for splits in splits_of]
+
+    def pair_errors(pair, splits):
         a, b, _ = pair
-        e_own, e_pair = np.zeros(2), np.zeros(2)
+        e_pair = np.zeros(2)
         for tr, te in splits:
-            for i, j in enumerate((a, b)):
-                e_own[i] += np.sum((_own(Qd[te, j]) @ own_fit(Qd[tr], R[tr], j) - R[te, j]) ** 2)
             pred = _pair_fit(Qd[tr], R[tr], pair)(Qd[te])
             e_pair += np.sum((pred - R[te][:, [a, b]]) ** 2, axis=0)
-        return e_own, e_pair
+        return e_pair
 
     wins = []
     for a in range(N - 1):
         for s in (1, -1):
             ok, ratio = True, 1.0
-            for splits in (folds, folds_h):
-                e_own, e_pair = errors((a, a + 1, s), splits)
+            for splits, own_e in zip(splits_of, own_err):
+                e_own, e_pair = own_e[[a, a + 1]], pair_errors((a, a + 1, s), splits)
                 ok &= bool(e_pair.sum() < (1.0 - MARGIN) * e_own.sum() and
                            np.all(e_pair <= e_own))
                 ratio = min(ratio, e_pair.sum() / e_own.sum())
