@@ -7,6 +7,7 @@ restart is counted, and what the learner knew about the data's range (``residual
 cap of the answers' bound) carries over. No timing is asserted: bench/arm_live.py --kill
 reports the silences and the time back.
 """
+import contextlib
 import os
 import signal
 import time
@@ -27,10 +28,26 @@ def _feed(est, rng, t, n):
     return out, t + 0.01 * n
 
 
+def _estimator(buffer_size: int) -> OnlineEstimator:
+    """Make an estimator whose learner runs in its own process, refitting at every chance."""
+    return OnlineEstimator(EstimatorConfig(buffer_size=buffer_size, min_samples=10,
+                                           refit_period_s=0.0, selection='all', prior='viscous',
+                                           bias=False, refit_mode='process'))
+
+
+@contextlib.contextmanager
+def _learner_stopped(est):
+    """Hold the learner process (SIGSTOP) for the block: what is sent meanwhile waits."""
+    pid = est._learner._proc.pid
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        os.kill(pid, signal.SIGCONT)
+
+
 def test_a_killed_learner_is_restarted_from_the_last_snapshot_and_answers_never_stop():
-    cfg = EstimatorConfig(buffer_size=40, min_samples=10, refit_period_s=0.0, selection='all',
-                          prior='viscous', bias=False, refit_mode='process')
-    est = OnlineEstimator(cfg)
+    est = _estimator(40)
     rng = np.random.default_rng(0)
     t = 0.0
     try:
@@ -73,22 +90,16 @@ def test_a_reset_forgets_the_samples_still_on_their_way_to_the_learner():
     after a reset, seen with two suites on two cores).
     """
     import threading
-    cfg = EstimatorConfig(buffer_size=200, min_samples=10, refit_period_s=0.0, selection='all',
-                          prior='viscous', bias=False, refit_mode='process')
-    est = OnlineEstimator(cfg)
+    est = _estimator(200)
     rng = np.random.default_rng(1)
     try:
         _, t = _feed(est, rng, 0.0, 5)
         assert est.wait_for_refit(60)
-        proc = est._learner._proc
-        os.kill(proc.pid, signal.SIGSTOP)
-        try:
+        with _learner_stopped(est):
             _, t = _feed(est, rng, t, 30)            # in the ring, not taken
             th = threading.Thread(target=est.reset)
             th.start()
             time.sleep(0.3)                          # the reset waits in the pipe
-        finally:
-            os.kill(proc.pid, signal.SIGCONT)
         th.join(30)
         assert not th.is_alive()
         fills = []                                   # time to learn what it was still sent
@@ -116,27 +127,17 @@ def test_a_save_learns_every_sample_sent_before_it(tmp_path):
     after it resumes holds the newest of them.
     """
     from dgp_ros.gp import load_model
-    cfg = EstimatorConfig(buffer_size=1000, min_samples=10, refit_period_s=0.0, selection='all',
-                          prior='viscous', bias=False, refit_mode='process')
-    est = OnlineEstimator(cfg)
+    est = _estimator(1000)
     rng = np.random.default_rng(2)
     path = str(tmp_path / 'model.npz')
     try:
         _, t = _feed(est, rng, 0.0, 20)
         assert est.wait_for_refit(60)
-        proc = est._learner._proc
-        os.kill(proc.pid, signal.SIGSTOP)
-        try:
-            sent = []
-            for i in range(400):                     # 4 s of stamps: in the ring, not taken
-                q = rng.uniform(-1.0, 1.0, 3)
-                est.process(t + 0.01 * i, NAMES, q, 2.0 * q + 0.3 * np.tanh(q / 0.05))
-                sent.append(q)
-        finally:
-            os.kill(proc.pid, signal.SIGCONT)
+        with _learner_stopped(est):
+            sent, t = _feed(est, rng, t, 400)        # 4 s of stamps: in the ring, not taken
         est.save(path)
         X = load_model(path).X_train_
-        for q in sent[-5:]:
-            assert np.min(np.abs(X - q).max(axis=1)) < 1e-9, (len(X), q)
+        for a in sent[-5:]:
+            assert np.min(np.abs(X - a.qd).max(axis=1)) < 1e-9, (len(X), a.qd)
     finally:
         est.close()

@@ -334,7 +334,7 @@ class LearnerLoop:
             else:
                 if kind in ('refit', 'save', 'samples', 'reconfigure'):
                     # they act on what was sent before them
-                    self._drain(msg[3] if kind == 'save' and len(msg) > 3 else None)
+                    self._drain(msg[3] if kind == 'save' else None)   # (a save's mark)
                 self._reply(kind, msg[1], msg[2:])
         return True
 
