@@ -41,7 +41,7 @@ from dgp_ros.gp.joint_element import ElementFit, M_BASIS
 from .coupling_track import CONFIRM_S, COUPLING_RIDGE, COUPLING_RIDGES, CouplingTrack
 from .element_track import ElementTrack
 from .joint_choice import JointChoice
-from .layout import Unknowns
+from .layout import TC, transmission_columns, Unknowns
 from .parametric import F, FAMILIES, friction_columns, ParametricFit
 from .statistics import Stats
 
@@ -97,7 +97,7 @@ class LongHistory(JointChoice):
 
     def __init__(self, N: int, basis=None, default_family: str = 'friction',
                  offsets: bool = True, elements: bool = True, couplings: bool = False,
-                 asymmetric: Optional[bool] = None):
+                 asymmetric: Optional[bool] = None, transmissions: Optional[bool] = None):
         if couplings and elements:
             raise ValueError('long history: couplings and elements are for different systems')
         self.N = int(N)
@@ -110,7 +110,11 @@ class LongHistory(JointChoice):
         #: joints differ between their directions (None: with the elements)
         self.asymmetric = bool(elements if asymmetric is None else asymmetric)
         self.FE = 2 * F if self.asymmetric else F
-        self.L = self.FE + 1 + self.C + self.K
+        #: coupled transmissions between adjacent joints (an arm's: None follows ``elements``)
+        self.transmissions = bool(elements if transmissions is None else transmissions) and \
+            self.N >= 2
+        self.TC = TC if self.transmissions else 0
+        self.L = self.FE + 1 + self.C + self.K + self.TC
         #: the statistics' columns: the parametric ones (friction, offset, correction,
         #: couplings), then the element's (module docstring)
         self.Lx = self.L + (M_BASIS if elements else 0)
@@ -129,7 +133,7 @@ class LongHistory(JointChoice):
 
     def _layout(self) -> None:
         """Lay out the unknowns: friction per joint, offsets, the shared correction, couplings."""
-        self.unknowns = Unknowns(self.N, self.C, self.K, self.asymmetric)
+        self.unknowns = Unknowns(self.N, self.C, self.K, self.asymmetric, self.transmissions)
         self.P = self.unknowns.P
         self._idx = self.unknowns.idx
 
@@ -168,6 +172,8 @@ class LongHistory(JointChoice):
         rows, self._rows = self._rows, []
         V = np.array([v for *_, v in rows])
         E = self.element.columns(V, self._last_t)                                 # (k, N, M)
+        if self.TC:
+            E = np.concatenate([transmission_columns(V), E], axis=2)
         if self.coupling is not None:
             dead = self.coupling.observe(V, self._last_t)
             if dead:
@@ -232,12 +238,18 @@ class LongHistory(JointChoice):
     def _global(self, st: Stats) -> Tuple[np.ndarray, np.ndarray]:
         return self.unknowns.gram(st)
 
-    def _mask(self, family: str, offsets, conservative: bool, asymmetric=False) -> np.ndarray:
-        """Columns of a structure; ``offsets``, ``asymmetric``: a bool, or (N,) bools."""
+    def _mask(self, family: str, offsets, conservative: bool, asymmetric=False,
+              transmission=()) -> np.ndarray:
+        """
+        Columns of a structure; ``offsets``, ``asymmetric``: a bool, or (N,) bools.
+
+        transmission : the motors that serve, ((a, s), ...) (``layout.Unknowns.mask``).
+        """
         c = None if self.coupling is None else self.coupling.serving(CONFIRM_S)
         # the most persistent column's couplings serve always
         coupling = None if c is None else (c, self.K // len(self.coupling.cols))
-        return self.unknowns.mask(family, offsets, conservative, coupling, asymmetric)
+        return self.unknowns.mask(family, offsets, conservative, coupling, asymmetric,
+                                  transmission)
 
     def _solve(self, G: np.ndarray, b: np.ndarray, mask: np.ndarray, n: int,
                ridge: Optional[float] = None) -> np.ndarray:
@@ -297,6 +309,7 @@ class LongHistory(JointChoice):
                 best = keep
             best = (best[0], self._joint_offsets(per_joint, best), best[2])
             best = best + (self._joint_asymmetry(best, folds, total),)
+            best = best + (self._joint_transmissions(best, folds),)
             k = self._memory(best, folds, at, n_test * var)
             if self._coupled():         # the couplings' ridge: the one the CV blocks favour
                 self.ridge = min(COUPLING_RIDGES, key=lambda r: self._score(
@@ -361,10 +374,11 @@ class LongHistory(JointChoice):
         close = [c for c, v in pool.items() if v <= (1.0 + SIMPLER_MARGIN) * top]
         return min(close, key=lambda c: (int(self._mask(*c).sum()), pool[c]))
 
-    def fit(self, family: str, offsets, conservative: bool, asymmetric=False) -> ParametricFit:
-        """Fit one given structure on the whole history."""
+    def fit(self, family: str, offsets, conservative: bool, asymmetric=False,
+            transmission=()) -> ParametricFit:
+        """Fit one given structure on the whole history (``transmission``: ((a, s), ...))."""
         return self._fit(self._total(self._blocks, True),
-                         (family, offsets, conservative, asymmetric), {})
+                         (family, offsets, conservative, asymmetric, tuple(transmission)), {})
 
     def refit(self, fit: ParametricFit) -> ParametricFit:
         """
@@ -377,7 +391,7 @@ class LongHistory(JointChoice):
             [f'{h:g} s' for h in HALF_LIVES_S].index(fit.memory)
         out = self._fit(self._total(self._blocks, True, k),
                         (fit.family, fit.offsets, fit.conservative,
-                         False if fit.asymmetric is None else fit.asymmetric),
+                         False if fit.asymmetric is None else fit.asymmetric, fit.motors()),
                         fit.scores, None, k)
         out.samples = fit.samples               # the selection's growth counts from its own
         return out
@@ -394,19 +408,24 @@ class LongHistory(JointChoice):
         k0 = U.coup0
         coupling = None
         c = None if self.coupling is None else self.coupling.serving(CONFIRM_S)
-        if c is not None and np.any(theta[k0:]):
+        if c is not None and np.any(theta[k0:U.tr0]):
             size = self.K // len(self.coupling.cols)          # the serving column's features
-            W = theta[k0:].reshape(N, self.K)[:, c * size:(c + 1) * size].copy()
+            W = theta[k0:U.tr0].reshape(N, self.K)[:, c * size:(c + 1) * size].copy()
             coupling = (self.coupling.fitted_basis(c), W)
         coef, coef_neg = U.friction(theta)
         asym = np.broadcast_to(np.asarray(cand[3] if len(cand) > 3 else False, bool),
                                (N,)).copy()
+        motors = [(a, s, theta[U.motor(a, s)]) for a, s in (cand[4] if len(cand) > 4 else ())]
+        motors = [(a, s, c) for a, s, c in motors if np.any(c > 0.0)]
+        transmission = None if not motors else (
+            tuple((a, a + 1, int(s)) for a, s, _ in motors),
+            np.maximum(np.array([c for *_, c in motors]), 0.0))
         return ParametricFit(cand[0], offs, bool(cand[2]), coef,
                              theta[U.off0:U.corr0].copy(), theta[U.corr0:k0].copy(),
                              self.basis, scores, total.n if samples is None else samples,
                              'all' if memory < 0 else f'{HALF_LIVES_S[memory]:g} s',
                              self._element(mask, theta, total, memory), coupling, coef_neg,
-                             asym)
+                             asym, transmission)
 
     def _element(self, mask: np.ndarray, theta: np.ndarray, total: Stats,
                  memory: int) -> Optional[ElementFit]:

@@ -5,7 +5,8 @@ The long history (:mod:`~.history`) chooses one structure for all joints by cros
 these rules then give or withhold a part joint by joint, each on that joint's own evidence: its
 score on the newest blocks (forward chaining) and across the two interleaved halves of the run
 (each fitted on one half, scored on the other). One joint's score is noisier than the mean over
-joints, so a part needs a clear win (:data:`JOINT_OFFSET_MARGIN`).
+joints, so a part needs a clear win (:data:`JOINT_OFFSET_MARGIN`). A coupled transmission
+between adjacent joints is judged on the pair's evidence (:data:`MOTOR_MARGIN`).
 
 :class:`JointChoice` is a mixin of :class:`~.history.LongHistory`: it reads the history's
 ``N``, ``asymmetric``, ``element.halves``, ``_idx`` and its ``_mask``, ``_solve``, ``_sse`` and
@@ -22,7 +23,7 @@ from dgp_ros.gp.joint_element import MIN_HALF_SAMPLES
 from .parametric import F, FAMILIES
 from .statistics import Stats
 
-__all__ = ['JointChoice', 'JOINT_OFFSET_MARGIN', 'ASYM_AGREEMENT']
+__all__ = ['JointChoice', 'JOINT_OFFSET_MARGIN', 'ASYM_AGREEMENT', 'MOTOR_MARGIN']
 
 #: a joint keeps its offset only where it cuts that joint's own CV score by this fraction (one
 #: joint's score is noisier than the mean over joints that ``OFFSET_MARGIN`` judges)
@@ -30,6 +31,9 @@ JOINT_OFFSET_MARGIN = 0.3
 #: a joint's friction gets a level per direction only where two halves of the run differ on
 #: that part by less than this times the part (they agree on its sign and size)
 ASYM_AGREEMENT = 1.0
+#: a coupled transmission serves where it cuts its two joints' summed squared error by this
+#: fraction, on the newest blocks and across the halves of the run
+MOTOR_MARGIN = 0.3
 
 
 class JointChoice:
@@ -121,3 +125,44 @@ class JointChoice:
             d, w = th[0][e] - th[1][e], full[e]
             out[j] = d @ G @ d < ASYM_AGREEMENT ** 2 * max(w @ G @ w, 1e-300)
         return out
+
+    def _joint_transmissions(self, best: tuple, folds: list) -> tuple:
+        """
+        Return the coupled transmissions that serve, ((a, s), ...) each on ``qd_a + s qd_{a+1}``.
+
+        A motor shared by joints a and a + 1 (``gp.transmission``) serves where, added to the
+        chosen structure ``best``, it cuts the pair's summed squared error by ``MOTOR_MARGIN``
+        and neither joint's grows, both on the newest blocks (``folds``: each fitted on everything
+        before it) and across the two interleaved halves of the run (each of at least
+        ``MIN_HALF_SAMPLES``): a motor that one stretch of the run shows and the other does not
+        is a pose's load. Where candidates share a joint, the one with the larger cut serves.
+        A simulated wrist whose one motor drives its last two joints: that pair found on two arms
+        and two seeds each, no motor on the same arms without it (``bench/coupled_wrist.py``).
+        """
+        halves = self.element.halves
+        if not self.TC or not folds or min(h.n for h in halves) < MIN_HALF_SAMPLES:
+            return ()
+
+        def errors(motors):
+            m = self._mask(*best[:4], motors)
+            fwd = sum(self._sse(test, self._solve(G, b, m, n)) for (G, b), n, test in folds)
+            return fwd, self._across(best[:4] + (motors,))[0]
+        base = errors(())
+        wins = []
+        for a in range(self.N - 1):
+            pair = [a, a + 1]
+            for s in (1, -1):
+                ratio = 0.0
+                for e, e0 in zip(errors(((a, s),)), base):
+                    if not (e[pair].sum() < (1.0 - MOTOR_MARGIN) * e0[pair].sum() and
+                            np.all(e[pair] <= e0[pair])):
+                        break
+                    ratio = max(ratio, e[pair].sum() / e0[pair].sum())
+                else:
+                    wins.append((ratio, a, s))
+        out, used = [], set()
+        for _, a, s in sorted(wins):
+            if a not in used and a + 1 not in used:
+                out.append((a, s))
+                used.update((a, a + 1))
+        return tuple(sorted(out))

@@ -4,17 +4,24 @@ The parametric part's unknowns over all joints, and their bounded least-squares 
 The long history (:mod:`~.history`) keeps, per joint, the statistics of its local columns
 
     [friction F odd (then, on an arm, their F even twins |col|), offset 1, correction C,
-     couplings K]
+     couplings K, transmissions TC]
 
 (:mod:`~.parametric`); the unknowns of every joint are solved together because the correction
-of the rigid-body model is shared. :class:`Unknowns` lays them out, says which columns a
-structure uses (``mask``), and solves from the statistics with the friction kept passive:
+of the rigid-body model and a coupled transmission's motor are shared. :class:`Unknowns` lays
+them out, says which columns a structure uses (``mask``), and solves from the statistics with
+the friction kept passive:
 
 * a **symmetric** family uses the odd columns with non-negative coefficients;
 * an **asymmetric** joint (its family's even twins too) fits ``a_k f_k + b_k |f_k|``,
   solved as the coefficients of the column's positive and negative parts,
   ``c+ = a + b >= 0`` and ``c- = a - b >= 0`` (``f = f+ + f-``, ``|f| = f+ - f-``): each
-  direction of motion its own Coulomb and viscous levels, each passive.
+  direction of motion its own Coulomb and viscous levels, each passive;
+* a **transmission** between adjacent joints a, a + 1 (on an arm: ``transmissions``) is one
+  motor turning at ``m = qd_a + s qd_{a+1}`` (``gp.transmission``): its non-negative Coulomb and
+  viscous coefficients are shared by both joints, whose local columns are ``phi(m)`` and
+  ``s phi(m)``. Joint j's TC = 8 local columns are the motors of pairs (j - 1, j) and (j, j + 1),
+  each sign; the unknowns are laid out per pair ``p`` = 0..N (pair p joins joints p - 1 and p;
+  pairs 0 and N have no second joint: their columns are zero and never masked).
 
 No rclpy.
 """
@@ -25,13 +32,38 @@ from typing import Optional, Tuple
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
+from dgp_ros.gp.transmission import FEATURES, motor_columns
+
 from .parametric import F, FAMILIES
 from .statistics import nonnegative_part
 
-__all__ = ['Unknowns', 'REVERSAL']
+__all__ = ['Unknowns', 'REVERSAL', 'transmission_columns', 'TC']
 
 #: an offset is identifiable once a joint's mean sign of velocity is within this of zero
 REVERSAL = 0.8
+#: a joint's transmission columns: two pairs, two signs, the motor's features
+TC = 2 * 2 * FEATURES
+_SIGNS = np.array([1.0, -1.0])
+
+
+def transmission_columns(V: np.ndarray) -> np.ndarray:
+    """
+    Return every joint's transmission columns at velocities V (k, N): (k, N, TC).
+
+    Joint j's: ``s phi(qd_{j-1} + s qd_j)`` for s = +1, -1 (zero for j = 0), then
+    ``phi(qd_j + s qd_{j+1})`` (zero for the last joint); ``phi`` = ``gp.transmission``'s
+    ``motor_columns``.
+    """
+    V = np.asarray(V, float)
+    k, N = V.shape
+    out = np.zeros((k, N, TC))
+    if N < 2:
+        return out
+    phi = motor_columns(V[:, :-1, None] + _SIGNS * V[:, 1:, None])     # (k, N - 1, 2, FEAT)
+    h = 2 * FEATURES
+    out[:, 1:, :h] = (_SIGNS[:, None] * phi).reshape(k, N - 1, h)
+    out[:, :-1, h:] = phi.reshape(k, N - 1, h)
+    return out
 
 
 class Unknowns:
@@ -39,35 +71,49 @@ class Unknowns:
     The unknowns of N joints (module docstring).
 
     Per joint ``2F`` friction coefficients (odd, even), then the offsets, the shared correction
-    (C) and the couplings (K per joint). ``idx[j]`` lists joint j's unknowns in the order of
-    its local statistics' columns.
+    (C), the couplings (K per joint) and with ``transmissions`` the motors (2 x FEATURES per
+    pair 0..N). ``idx[j]`` lists joint j's unknowns in the order of its local statistics'
+    columns.
     """
 
-    def __init__(self, N: int, C: int, K: int, even: bool = True):
+    def __init__(self, N: int, C: int, K: int, even: bool = True, transmissions: bool = False):
         self.N, self.C, self.K = int(N), int(C), int(K)
         self.even = bool(even)
+        #: transmission columns per joint (0: none)
+        self.TC = TC if transmissions and self.N >= 2 else 0
         #: friction columns per joint: the odd ones, and with ``even`` their twins
         self.FE = FE = 2 * F if self.even else F
         N = self.N
         self.off0 = N * FE
         self.corr0 = self.off0 + N
         self.coup0 = self.corr0 + self.C
-        self.P = self.coup0 + N * self.K
+        self.tr0 = self.coup0 + N * self.K
+        self.P = self.tr0 + ((N + 1) * self.TC // 2 if self.TC else 0)
         twins = (lambda j: N * F + np.arange(j * F, (j + 1) * F)) if self.even else \
             (lambda j: np.zeros(0, int))
         self.idx = [np.r_[np.arange(j * F, (j + 1) * F), twins(j),
                           self.off0 + j, self.corr0 + np.arange(self.C),
-                          self.coup0 + j * self.K + np.arange(self.K)] for j in range(N)]
+                          self.coup0 + j * self.K + np.arange(self.K),
+                          self.tr0 + j * self.TC // 2 + np.arange(self.TC)] for j in range(N)]
         #: the local column count of the parametric part
-        self.L = FE + 1 + self.C + self.K
+        self.L = FE + 1 + self.C + self.K + self.TC
+
+    def motor(self, a: int, s: int) -> np.ndarray:
+        """Return the unknowns of the motor on ``qd_a + s qd_{a+1}`` (FEATURES,)."""
+        if not self.TC or not 0 <= a < self.N - 1:
+            raise ValueError(f'no transmission between joints {a} and {a + 1}')
+        return self.tr0 + (a + 1) * self.TC // 2 + (0 if s > 0 else FEATURES) + \
+            np.arange(FEATURES)
 
     def mask(self, family: str, offsets, conservative: bool,
-             coupling: Optional[Tuple[int, int]] = None, asymmetric=False) -> np.ndarray:
+             coupling: Optional[Tuple[int, int]] = None, asymmetric=False,
+             transmission=()) -> np.ndarray:
         """
         Return the unknowns of a structure, (P,) bools.
 
         offsets, asymmetric : a bool or (N,) bools; coupling : (serving column, features per
-        column) of the couplings that serve, or None.
+        column) of the couplings that serve, or None; transmission : the motors that serve,
+        ((a, s), ...) each on ``qd_a + s qd_{a+1}``.
         """
         m = np.zeros(self.P, bool)
         cols = np.asarray(FAMILIES[family], int)
@@ -84,6 +130,8 @@ class Unknowns:
             c, size = coupling
             for j in range(self.N):
                 m[self.coup0 + j * self.K + c * size + np.arange(size)] = True
+        for a, s in transmission:
+            m[self.motor(a, s)] = True
         return m
 
     def identifiable(self, G: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -148,14 +196,14 @@ class Unknowns:
         ridge = np.zeros(idx.size)
         ridge[(idx >= self.corr0) & (idx < self.coup0)] = corr_ridge
         d = np.diag(Gs).copy()
-        is_k = idx >= self.coup0
+        is_k = (idx >= self.coup0) & (idx < self.tr0)
         if is_k.any():          # the couplings; not the constant feature
             first = (idx - self.coup0) % max(self.K, 1) == 0
             ridge[is_k & ~first] = coupling_ridge * d[is_k & ~first] / max(n, 1)
         dn = d[~is_k]
         Gs[np.diag_indices_from(Gs)] += ridge + 1e-9 * d + 1e-12 * (
             (dn.mean() if dn.size else 0.0) + 1e-300)
-        bounded = idx < self.off0
+        bounded = (idx < self.off0) | (idx >= self.tr0)      # friction and motors: passive
         x = cho_solve(cho_factor(Gs), bs)
         if np.any(x[bounded] < 0.0):
             x = nonnegative_part(Gs, bs, bounded)

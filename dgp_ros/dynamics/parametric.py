@@ -7,7 +7,8 @@ What the long history (:mod:`~dgp_ros.dynamics.history`) fits and the learner se
 column odd, its coefficient non-negative, so passive; an asymmetric family has a level per
 direction of motion, each non-negative: the Coulomb and viscous friction of a geared joint
 differ between its directions), an offset, a conservative correction of
-the rigid-body model, and on a system that is not an arm the couplings of a persistent column
+the rigid-body model, on an arm the motors of coupled transmissions (``gp.transmission``), and
+on a system that is not an arm the couplings of a persistent column
 (``gp.coupled``); :class:`ParametricFit` holds one fitted structure and turns it into the D-GP's
 prior mean (``friction_mean``) and the correction a saved model carries. No rclpy.
 """
@@ -75,6 +76,14 @@ class ParametricFit:
     coef_neg: Optional[np.ndarray] = None
     #: per joint, whether its friction has a level per direction of motion ((N,) bools)
     asymmetric: Optional[np.ndarray] = None
+    #: coupled transmissions (``gp.transmission``): (pairs ((a, a + 1, s), ...), coef (P, 2)
+    #: each motor's [Coulomb, viscous] >= 0), or None
+    transmission: Optional[tuple] = None
+
+    def motors(self) -> tuple:
+        """Return the motors that serve as the history's structure names them, ((a, s), ...)."""
+        return () if self.transmission is None else \
+            tuple((a, s) for a, _, s in self.transmission[0])
 
     def label(self, names=None) -> str:
         """Name the structure (/diagnostics ``structure``); ``names``: the velocities'."""
@@ -93,6 +102,11 @@ class ParametricFit:
             parts.append('couplings through ' + ' '.join(
                 str(names[p]) if names is not None and p < len(names) else str(p)
                 for p in cols))
+        if self.transmission is not None:
+            def name(p):
+                return str(names[p]) if names is not None and p < len(names) else str(p)
+            parts.append('transmission on ' + ' '.join(
+                f'{name(a)}{"+" if s > 0 else "-"}{name(b)}' for a, b, s in self.transmission[0]))
         if self.memory != 'all':
             parts.append(f'{self.memory} memory')
         if self.element is not None and self.element.label():
@@ -107,7 +121,11 @@ class ParametricFit:
         if self.coupling is not None:
             from dgp_ros.gp.coupled import CoupledMean
             return CoupledMean(base, *self.coupling)
-        return base if self.element is None else self.element.mean(base)
+        mean = base if self.element is None else self.element.mean(base)
+        if self.transmission is not None:
+            from dgp_ros.gp.transmission import TransmissionMean
+            mean = TransmissionMean(mean, *self.transmission)
+        return mean
 
     def train_correction(self, Yt: Optional[np.ndarray]) -> np.ndarray:
         """Return what the non-damping parts explain of samples with columns Yt (k, N, C)."""

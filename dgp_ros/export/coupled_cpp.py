@@ -1,6 +1,10 @@
 """
 The C++ of a coupled prior (``gp.coupled.CoupledMean``): its force, matrix, gains and gate.
 
+A prior with coupled transmissions (``gp.transmission.TransmissionMean``) takes the same form,
+with a motor per pair instead of the persistent columns (``_motor``): its force is passive
+before the projection, which then changes nothing but rounding.
+
 A coupled prior is a diagonal base ``diag(m_d(qd))`` (``prior_diag``, as for any prior) plus,
 for each persistent column ``p``, the couplings ``tau_i += v_p^2 psi_p(x)^T W_p[i] / vref_p^2``
 and ``D[i, p] += v_p psi_p(x)^T W_p[i] / vref_p^2`` (``x``: the other velocities clipped into
@@ -116,6 +120,28 @@ def _column(c: int, col: dict, boxed: bool) -> List[str]:
     return out
 
 
+def _motor(motor: tuple, eps: float) -> List[str]:
+    """
+    Return the lines adding one coupled transmission (``gp.transmission``) to ``cp`` and M.
+
+    ``motor``: (a, b, s, Coulomb, viscous); the motor turns at ``m = qd_a + s qd_b``, its force
+    ``f = c tanh(m / eps) + v m`` goes to joint a and ``s f`` to joint b, and ``g = f / m``
+    (``_tanh_over``'s ``1 / eps`` below ``1e-6 eps``) to ``M`` as ``g t t^T``.
+    """
+    a, b, s, cc, cv = motor
+    op, sg = ('+', '') if s > 0 else ('-', '-')
+    return [f'  {{  // the motor of joints {a} and {b}, turning at qd[{a}] {op} qd[{b}]',
+            f'    const double m = qd[{a}] {op} qd[{b}], am = std::fabs(m);',
+            f'    const double f = {lit(cc)} * std::tanh(m / {lit(eps)}) + {lit(cv)} * m;',
+            f'    cp[{a}] += f;', f'    cp[{b}] += {sg}f;',
+            '    if (M != nullptr) {',
+            f'      const double g = {lit(cc)} * (am < {lit(1e-6 * eps)} ? {lit(1.0 / eps)} : '
+            f'std::tanh(am / {lit(eps)}) / am) + {lit(cv)};',
+            f'      M[{a} * N + {a}] += g;', f'      M[{b} * N + {b}] += g;',
+            f'      M[{a} * N + {b}] += {sg}g;', f'      M[{b} * N + {a}] += {sg}g;',
+            '    }', '  }']
+
+
 def coupled_code(spec: Spec) -> str:
     """
     Return the coupled prior's constants and functions (module docstring).
@@ -141,6 +167,8 @@ def coupled_code(spec: Spec) -> str:
              '      for (std::size_t j = 0; j < N; ++j) M[i * N + j] = i == j ? md[i] : 0.0;']
     for c, col in enumerate(cpl['columns']):
         lines += _column(c, col, boxed)
+    for motor in cpl.get('motors', ()):
+        lines += _motor(motor, cpl['eps'])
     lines += ['  if (M != nullptr) {',
               '    double mq[N];',
               '    for (std::size_t i = 0; i < N; ++i) {',

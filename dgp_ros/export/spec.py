@@ -28,6 +28,7 @@ from dgp_ros.gp.joint_element import JointElementMean
 from dgp_ros.gp.means import BasisFrictionMean, FrictionMean, ViscousMean
 from dgp_ros.gp.passivity import NonePolicy, PaperPolicy, policy_class, ProjectedPolicy
 from dgp_ros.gp.persistence import rebuild_correction, SavedCorrection
+from dgp_ros.gp.transmission import EPS as TRANSMISSION_EPS, TransmissionMean
 
 from .errors import ExportError
 
@@ -124,7 +125,8 @@ def _prior(mean, N: int) -> dict:
     ``element``: the joints that carry one, their weights (n, M), velocity scales and sign
     smoothings (n,), added and floored at 0 as the mean does. A prior with the couplings of
     persistent columns (``gp.coupled.CoupledMean``) is its base's too, with ``coupled``
-    (:func:`_coupled`).
+    (:func:`_coupled`); so is one with coupled transmissions (``gp.transmission``), whose
+    ``coupled`` has no column and its ``motors`` (a, b, s, Coulomb, viscous) at ``eps``.
     """
     if isinstance(mean, JointElementMean):
         out = _prior(mean.base, N)
@@ -139,6 +141,13 @@ def _prior(mean, N: int) -> dict:
     if isinstance(mean, CoupledMean):
         out = _prior(mean.base, N)
         out['coupled'] = _coupled(mean)
+        return out
+    if isinstance(mean, TransmissionMean):
+        # a non-diagonal prior in the coupled form: no persistent column, a motor per pair
+        out = _prior(mean.base, N)
+        out['coupled'] = {'box': None, 'columns': [], 'eps': float(TRANSMISSION_EPS),
+                          'motors': [(a, b, s, float(c[0]), float(c[1]))
+                                     for (a, b, s), c in zip(mean.pairs, mean.coef)]}
         return out
     if isinstance(mean, ViscousMean):
         return {'coef': np.asarray(mean.m_d, float).reshape(N, 1), 'eps': np.zeros((N, 1)),
@@ -157,7 +166,8 @@ def _prior(mean, N: int) -> dict:
             out['coef_neg'] = np.asarray(mean.coef_neg, float)
         return out
     raise ExportError(f'the prior {type(mean).__name__} has no C++ form (viscous, friction, '
-                      f'frozen friction and coupled priors do): refit with one of these priors')
+                      'frozen friction, coupled and transmission priors do): refit with one of '
+                      'these priors')
 
 
 def psi_terms(n: int, paired: bool) -> List[tuple]:

@@ -12,7 +12,7 @@ attributes), ``joint_element`` (the per-joint element of D learned from every sa
 reduced-rank GP on each joint's velocity), ``coupled`` (the couplings of a velocity that never
 nears zero, an aircraft's airspeed, in the prior mean).
 """
-from . import coupled, joint_element  # noqa: F401 - register their prior means for model files
+from . import coupled, joint_element, transmission  # noqa: F401 - register their prior means
 from .kernels import KINDS, se_ard, se_bound
 from .means import prior_mean_diag, PRIORS
 from .models import ArdGP, DiagDGP, FullDGP, load_model, make_model, model_class

@@ -97,7 +97,30 @@ def _train(directory):
     m.grounds_ = _grounds(3, 7)
     out['coupled_gains'] = str(d / 'coupled_gains.npz')
     m.save(out['coupled_gains'])
+    m = _transmission_model()
+    m.grounds_ = _grounds(7, 11)
+    out['transmission'] = str(d / 'transmission.npz')
+    m.save(out['transmission'])
     return out
+
+
+def _transmission_model():
+    """
+    Return a Full-D-GP of an arm whose prior carries two coupled transmissions.
+
+    ``gp.transmission``: a motor on joints 5 + 6 and one on 2 - 3, over a friction prior with
+    elements; the data carry both motors, which the GP partly corrects.
+    """
+    from dgp_ros.gp import make_model
+    from dgp_ros.gp.transmission import motor_columns, TransmissionMean
+    Qd, Tau = _arm_data(n=90, coupling=0.1, seed=12)
+    for a, b, s, c in ((5, 6, 1, (0.6, 0.3)), (2, 3, -1, (0.2, 0.1))):
+        f = motor_columns(Qd[:, a] + s * Qd[:, b]) @ np.array(c)
+        Tau[:, a] += f
+        Tau[:, b] += s * f
+    prior = TransmissionMean(_element_prior(seed=13), [(5, 6, 1), (2, 3, -1)],
+                             [[0.5, 0.2], [0.25, 0.0]])
+    return make_model('full', prior=prior, bias=False, passivity='certified').fit(Qd, Tau)
 
 
 def _aircraft(t):
@@ -218,10 +241,13 @@ def test_guarantees_as_proven(built):
         assert [c['p'] for c in spec.prior['coupled']['columns']] == [2]
     assert built['coupled_gains'][0].grounds is not None
     assert 'coupled' not in built['a320'][0].prior
+    motors = built['transmission'][0].prior['coupled']['motors']
+    assert [m[:3] for m in motors] == [(5, 6, 1), (2, 3, -1)]
+    assert list(built['transmission'][0].prior['element']['joints']) == [0, 2, 5]
 
 
 @pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320', 'element_arm', 'asym_arm',
-                                  'coupled', 'coupled_gains'])
+                                  'coupled', 'coupled_gains', 'transmission'])
 @pytest.mark.parametrize('far', [False, True], ids=['inside', 'outside'])
 def test_equals_python_and_frozen_node(built, name, far):
     spec, model, exe, d, path = built[name]

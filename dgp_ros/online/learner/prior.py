@@ -94,7 +94,8 @@ class Structure:
             arm = self._inverse is not None
             self._history = LongHistory(N, basis, default, offsets=arm,
                                         elements=self._elements and arm,
-                                        couplings=self._couplings and not arm, asymmetric=arm)
+                                        couplings=self._couplings and not arm, asymmetric=arm,
+                                        transmissions=arm)
             h.correction_basis = '' if basis is None else basis.source
         try:
             return self._history.push(stamp, q, qd, qdd, r)
@@ -132,7 +133,7 @@ class Structure:
             # a pose-dependent correction fitted to a short or narrow history can be larger
             # than the residual it corrects (targets of 13 N m where the residual spans 2.6 on
             # a Panda 3 s into a stream): the D-GP would learn it as damping; not that one
-            fit = self._history.fit(fit.family, fit.offsets, False, fit.asymmetric)
+            fit = self._history.fit(fit.family, fit.offsets, False, fit.asymmetric, fit.motors())
             h.corrections_refused += 1
         self._param = fit
         h.structure = fit.label(self._names)
