@@ -5,6 +5,9 @@ The online estimator's message path: validate, answer, hand over to the learner 
 the measured velocity from the newest learner snapshot; ``process_batch`` does the same for every
 message waiting at once, with one vectorized prediction, and ``process_arrays`` (``arrays``) for a
 batch of like messages given as arrays (the node's raw path), without an object per message.
+They differ only in how the messages are checked (one by one, or a batch at once: the same
+rules); every accepted message is answered and learned by one step, ``_respond``, so the node,
+``dgp-replay`` and the library answer alike by construction.
 The learner (``learner.Learner``) is where everything is learned; where it runs is
 ``refit_mode``:
 
