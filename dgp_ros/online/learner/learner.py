@@ -244,14 +244,8 @@ class Learner:
             self.rebases.soon(self.parts())
         return added, residuals
 
-    def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray,
-                   q=None) -> Tuple[list, list]:
-        """
-        ``learn`` for k samples in order: t (k,) [s], qd and tau (k, N), q (k, N) or None.
-
-        Returns (k ``learn`` flags: taken for learning, k lists of the residual samples each
-        completed): what the message path answers with (``OnlineEstimator._respond``).
-        """
+    def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray, q=None):
+        """``learn`` for k samples in order (t (k,), qd and tau (k, N)); (k flags, k lists)."""
         got = [self.learn(float(t[j]), qd[j], tau[j], None if q is None else q[j])
                for j in range(len(t))]
         return [g[0] for g in got], [g[1] for g in got]
