@@ -99,7 +99,7 @@ class Learner:
         self.front = Front(cfg, self._inverse)
         self._last_t: Optional[float] = None
         self.window = Window(cfg.buffer_size, cfg.buffer_policy)
-        self.structure = Structure(cfg, self._inverse, h)
+        self.structure = Structure(cfg, self._inverse)
         # the counts a snapshot is recognized by keep increasing across resets
         self.grounds = Grounds(1 if old is None else self.grounds.seq + 1)
         self.served = Served(1 if old is None else self.served.version + 1)
@@ -282,7 +282,7 @@ class Learner:
             take, thinned = self.front.thin(take, thin, self.health)
             if self._inverse is None and self.config.learning:
                 self.structure.push_thinned(thinned, self.window, self.config, self._N,
-                                            self.structure_names())
+                                            self.structure_names(), self.health)
             if not take:
                 return False, done
         if self._inverse is None:
@@ -309,9 +309,9 @@ class Learner:
             h.samples_outliers += 1
             return False
         # the prior the answers came from before this sample (one step ahead)
-        prior = st.answering(win, self._N, self.served.model)
-        yt = st.push(stamp, q, qd, qdd, residual, self._N, self.structure_names())
-        target = st.target(residual, yt)
+        prior = st.answering(win, self._N, self.served.model, h)
+        yt = st.push(stamp, q, qd, qdd, residual, self._N, self.structure_names(), h)
+        target = st.target(residual, yt, h)
         surprise = self.grounds.note(stamp, qd, target, prior, residual, q, self.served.model)
         self.refits.note_novelty(stamp, qd, surprise, self._parts)
         if not win.novel(self.config, qd):
