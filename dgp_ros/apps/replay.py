@@ -9,7 +9,9 @@
 
 The bag's ``sensor_msgs/JointState`` messages are streamed, in bag order, through
 :class:`dgp_ros.online.OnlineEstimator`: the same code path as the estimator node (one
-implementation), with ``refit_mode='sync'`` so that the result is deterministic. Messages are
+implementation: ``process`` checks each message as the node checks what its array path does not
+cover, and every accepted message is answered by the node's step, ``OnlineEstimator._respond``),
+with ``refit_mode='sync'`` so that the result is deterministic. Messages are
 converted by :func:`dgp_ros.msgs.sample.joint_state_sample`, the node's converter, so the stamp
 given to the estimator is ``header.stamp`` computed exactly as the node does and replaying the
 bag a node saw gives the node's estimates (the tests check this to 1e-9).

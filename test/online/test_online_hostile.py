@@ -219,18 +219,18 @@ def test_a_correction_that_would_inflate_a_target_is_not_applied_to_it():
     from dgp_ros.online.learner.health import LearnerHealth
     from dgp_ros.online.learner.prior import Structure
     health = LearnerHealth()
-    st = Structure(EstimatorConfig(refit_mode='sync'), None, health)
+    st = Structure(EstimatorConfig(refit_mode='sync'), None)
     for r in ([2.0, -1.0], [-1.5, 0.5]):              # largest |residual|: 2.0 and 1.0
-        np.testing.assert_array_equal(st.target(np.array(r), None), r)
+        np.testing.assert_array_equal(st.target(np.array(r), None, health), r)
     corr = np.array([0.5, 0.0])
     st._param = SimpleNamespace(train_correction=lambda Y: np.broadcast_to(corr, (1, 2)))
-    np.testing.assert_allclose(st.target(np.array([1.0, 0.2]), None), [0.5, 0.2])
+    np.testing.assert_allclose(st.target(np.array([1.0, 0.2]), None, health), [0.5, 0.2])
     assert health.corrections_refused == 0
     corr[:] = [-4.0, 0.0]                                 # 1.0 + 4.0 > 1.25 x 2.0
-    np.testing.assert_array_equal(st.target(np.array([1.0, 0.2]), None), [1.0, 0.2])
+    np.testing.assert_array_equal(st.target(np.array([1.0, 0.2]), None, health), [1.0, 0.2])
     assert health.corrections_refused == 1
     corr[:] = [0.0, 0.2]                                  # -1.0 - 0.2 within 1.25 x 1.0
-    np.testing.assert_allclose(st.target(np.array([0.0, -1.0]), None), [0.0, -1.2])
+    np.testing.assert_allclose(st.target(np.array([0.0, -1.0]), None, health), [0.0, -1.2])
     assert health.corrections_refused == 1
 
 

@@ -137,7 +137,7 @@ class Rebases:
                 return
             seq, generation, hyper = win.seq, refits.generation, refits.hyper
             if st.reselect_due():
-                st.reselect(win)        # retargets the window; the prior rides in the hyper
+                st.reselect(win, parts.health)  # retargets the window; the prior: in the hyper
             else:
                 st.refresh()            # couplings of a persistent column: kept current
             gen = win.target_gen

@@ -269,7 +269,7 @@ class Refits:
                     or self._outgrown(win) or self._novel)
         self._novel = False
         if st.auto:
-            st.reselect(win)            # prior='auto': structure and correction on the history
+            st.reselect(win, h)         # prior='auto': structure and correction on the history
         Q, T = win.arrays()
         if optimize and Q.shape[0]:
             self._hyper_box = (Q.min(axis=0), Q.max(axis=0))

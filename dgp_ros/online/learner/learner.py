@@ -99,7 +99,7 @@ class Learner:
         self.front = Front(cfg, self._inverse)
         self._last_t: Optional[float] = None
         self.window = Window(cfg.buffer_size, cfg.buffer_policy)
-        self.structure = Structure(cfg, self._inverse, h)
+        self.structure = Structure(cfg, self._inverse)
         # the counts a snapshot is recognized by keep increasing across resets
         self.grounds = Grounds(1 if old is None else self.grounds.seq + 1)
         self.served = Served(1 if old is None else self.served.version + 1)
@@ -244,10 +244,11 @@ class Learner:
             self.rebases.soon(self.parts())
         return added, residuals
 
-    def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray, q=None) -> int:
-        """``learn`` for k samples in order (t (k,), qd and tau (k, N)); how many were taken."""
-        return sum(int(self.learn(float(t[j]), qd[j], tau[j], None if q is None else q[j])[0])
-                   for j in range(len(t)))
+    def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray, q=None):
+        """``learn`` for k samples in order (t (k,), qd and tau (k, N)); (k flags, k lists)."""
+        got = [self.learn(float(t[j]), qd[j], tau[j], None if q is None else q[j])
+               for j in range(len(t))]
+        return [g[0] for g in got], [g[1] for g in got]
 
     def poll(self, idle: bool = False) -> None:
         """
@@ -281,7 +282,7 @@ class Learner:
             take, thinned = self.front.thin(take, thin, self.health)
             if self._inverse is None and self.config.learning:
                 self.structure.push_thinned(thinned, self.window, self.config, self._N,
-                                            self.structure_names())
+                                            self.structure_names(), self.health)
             if not take:
                 return False, done
         if self._inverse is None:
@@ -308,9 +309,9 @@ class Learner:
             h.samples_outliers += 1
             return False
         # the prior the answers came from before this sample (one step ahead)
-        prior = st.answering(win, self._N, self.served.model)
-        yt = st.push(stamp, q, qd, qdd, residual, self._N, self.structure_names())
-        target = st.target(residual, yt)
+        prior = st.answering(win, self._N, self.served.model, h)
+        yt = st.push(stamp, q, qd, qdd, residual, self._N, self.structure_names(), h)
+        target = st.target(residual, yt, h)
         surprise = self.grounds.note(stamp, qd, target, prior, residual, q, self.served.model)
         self.refits.note_novelty(stamp, qd, surprise, self._parts)
         if not win.novel(self.config, qd):

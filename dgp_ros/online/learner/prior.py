@@ -38,8 +38,9 @@ class Structure:
     The parametric part (module docstring).
 
     config : the learner's ``EstimatorConfig`` (its model, prior and bias: structural, so fixed
-    for this part's life); inverse : the rigid-body model (None without one); health : the
-    learner's ``LearnerHealth``, where this part records what it chose and refused.
+    for this part's life); inverse : the rigid-body model (None without one). The learner's
+    ``LearnerHealth`` is passed to the steps that record what this part chose and refused
+    (``push``, ``reselect``, ``target``, ``prior``): it holds no peer.
     """
 
     #: a correction may make no learned target larger than this times the largest residual
@@ -51,7 +52,7 @@ class Structure:
     #: variance, every 10: 9.6e-3, every sample: 7.4e-3 (seed 777, flight 21, prior alone)
     FOLLOW_S = 0.02
 
-    def __init__(self, config, inverse, health):
+    def __init__(self, config, inverse):
         self.auto = config.prior == 'auto' and config.model != 'ard'
         self._family = 'viscous' if config.model == 'ard' or config.prior == 'auto' else \
             config.prior
@@ -61,7 +62,6 @@ class Structure:
         # which needs a diagonal prior
         self._couplings = config.passivity != 'paper'
         self._inverse = inverse
-        self._health = health
         self._history: Optional[LongHistory] = None
         self._param: Optional[ParametricFit] = None
         #: the auto prior of the last snapshot: (fit, mean, std, window seq, buffer rows)
@@ -74,11 +74,17 @@ class Structure:
         self._followed: Optional[float] = None      # when the couplings were last refitted
 
     # ------------------------------------------------------------------ the history
-    def push(self, stamp: float, q, qd, qdd, r, N: int, names: List[str]) -> Optional[np.ndarray]:
-        """Add a learned sample to the long history; its correction columns (N, C) or None."""
+    def push(self, stamp: float, q, qd, qdd, r, N: int, names: List[str],
+             health) -> Optional[np.ndarray]:
+        """
+        Add a learned sample to the long history; its correction columns (N, C) or None.
+
+        stamp [s]; q, qd, qdd, r : (N,) position, velocity, acceleration (None where not
+        known) and residual; ``health`` (``LearnerHealth``) records the basis and the errors.
+        """
         if not self.auto:
             return None
-        h = self._health
+        h = health
         self._names = list(names) if names else None
         if self._history is None:
             basis = None
@@ -103,7 +109,7 @@ class Structure:
             h.last_refit_error = f'long history: {type(exc).__name__}: {exc}'
             return None
 
-    def push_thinned(self, samples, window, config, N: int, names: List[str]) -> None:
+    def push_thinned(self, samples, window, config, N: int, names: List[str], health) -> None:
         """
         Add samples a learner behind its stream thinned out to the long history only.
 
@@ -115,20 +121,25 @@ class Structure:
         """
         for stamp, qd, r, q, qdd in samples:
             if window.buffer is not None and not window.outlier(config, qd, r):
-                self.push(stamp, q, qd, qdd, r, N, names)
+                self.push(stamp, q, qd, qdd, r, N, names, health)
 
     @property
     def history_samples(self) -> int:
         """Return how many samples the long history holds (0 without one)."""
         return 0 if self._history is None else self._history.samples
 
-    def reselect(self, window) -> None:
-        """Re-select and refit the parametric part on the history; retarget the window."""
+    def reselect(self, window, health) -> None:
+        """
+        Re-select and refit the parametric part on the history; retarget the window.
+
+        ``health`` (``LearnerHealth``) records the structure, its scores and a refused
+        correction.
+        """
         if not self.auto or self._history is None or self._history.samples == 0:
             return
         self._reselect_now = False
         fit = self._history.select(None if self._param is None else self._param.family)
-        h = self._health
+        h = health
         if fit.conservative and self._inflates(fit, window):
             # a pose-dependent correction fitted to a short or narrow history can be larger
             # than the residual it corrects (targets of 13 N m where the residual spans 2.6 on
@@ -219,14 +230,14 @@ class Structure:
         return self.auto and h is not None and p is not None and h.samples > p.samples
 
     # ------------------------------------------------------------------ targets
-    def target(self, r: np.ndarray, yt: Optional[np.ndarray]) -> np.ndarray:
+    def target(self, r: np.ndarray, yt: Optional[np.ndarray], health) -> np.ndarray:
         """
         Return the damping target of a residual r (N,) with correction columns yt.
 
         A correction fitted on the poses seen so far may extrapolate to a new pose: where it
         would make the target larger than ``CORRECTION_INFLATION`` x the largest residual
         learned on that joint, this sample is learned uncorrected (counted) until the next
-        re-selection refits the correction with it.
+        re-selection refits the correction with it (``health.corrections_refused``).
         """
         a = np.abs(r)
         self._rmax = a if self._rmax is None else np.maximum(self._rmax, a)
@@ -234,7 +245,7 @@ class Structure:
             return r
         t = r - self._param.train_correction(None if yt is None else yt[None])[0]
         if self._inflated(t, self._rmax):
-            self._health.corrections_refused += 1
+            health.corrections_refused += 1
             return r
         return t
 
@@ -280,16 +291,17 @@ class Structure:
         return [round(float(b), 6) for b in p.bias]
 
     # ------------------------------------------------------------------ the prior
-    def prior(self, window, N: int):
+    def prior(self, window, N: int, health):
         """
         Return (mean, std): the passive prior the answers come from before the first model.
 
         ``prior='auto'``: the parametric part itself; else the configured family fitted to the
         window, refitted per tenth of it (a 7-joint friction prior costs ~15 ms: refitted on
         every learned sample it held the answers while the first fit ran). std (N,) is the RMS
-        of what the prior leaves of the buffered targets.
+        of what the prior leaves of the buffered targets. ``health``: where a re-selection
+        records (``reselect``).
         """
-        auto = self._auto_prior(window, N)
+        auto = self._auto_prior(window, N, health)
         if auto is not None:
             return auto
         seq = window.seq
@@ -304,7 +316,7 @@ class Structure:
             self._fixed = (mean, std, seq)
         return self._fixed[0], self._fixed[1]
 
-    def answering(self, window, N: int, model):
+    def answering(self, window, N: int, model, health):
         """
         Return the prior the answers come from now (the fallback beside ``model``), or None.
 
@@ -316,11 +328,11 @@ class Structure:
         try:
             if model is not None and model.posterior_.structure.has_damping:
                 return model.mean_
-            return self.prior(window, N)[0]
+            return self.prior(window, N, health)[0]
         except Exception:           # noqa: BLE001 - no prior yet (degenerate buffer)
             return None
 
-    def _auto_prior(self, window, N: int):
+    def _auto_prior(self, window, N: int, health):
         """(mean, std) of the parametric part for answers before the first model, or None."""
         if not self.auto or self._history is None or self._history.samples < 1:
             return None
@@ -331,7 +343,7 @@ class Structure:
             fit = h.fit(h.default_family, False, False)
         else:
             if self._param is None or self._param.samples * 2 < h.samples:
-                self.reselect(window)
+                self.reselect(window, health)
             fit = self._param
             # every snapshot asks (tens a second): the mean is the fit's own, its stddev over
             # the buffer is refreshed per tenth of the buffer learned (the friction basis at

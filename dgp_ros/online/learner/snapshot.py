@@ -105,7 +105,7 @@ class Snapshots:
                 (s.frozen, s.variance) == (frozen, variance or not frozen):
             self._last = self._with_gains(s, grounds, learning)     # the gains earned since
             return self._last
-        mean, std = structure.prior(win, N)
+        mean, std = structure.prior(win, N, parts.health)
         model = served.model
         if model is not None and model.posterior_.structure.has_damping:
             # a model answers with its own prior and bounds: the same after a reload

@@ -1,17 +1,16 @@
 """
-The message path for a batch of like messages, as arrays: validate, learn, answer (no rclpy).
+The answers to a batch of accepted messages, as arrays (no rclpy).
 
 A driver sends the same joint names and array lengths in every message, so a batch of its
 messages is a few arrays: (k,) stamps and (k, n) positions, velocities, efforts
-(``cdr.JointStateRun``). :func:`validate` decides, for all of them at once, what
-``OnlineEstimator._validate`` and ``_accept`` decide one message at a time (the same reasons, in
-the same order, counted alike); :class:`Answers` holds the answers of the accepted ones as
-arrays, where ``process_batch`` makes an ``Estimate`` per message. The estimator
-(``OnlineEstimator.process_arrays``) ties them together and falls back to the per-message path
-for whatever this path does not cover (the first message, ``sync``).
-
-What is learned and answered is exactly what ``process_batch`` learns and answers for the same
-messages; only the Python objects per message are gone.
+(``cdr.JointStateRun``). :class:`Answers` holds the answers of the accepted ones as arrays. Every
+entry point of the estimator answers through one step that makes them
+(``OnlineEstimator._respond``): ``process_arrays`` (the node; the batch checked at once by
+``intake.Intake.check_batch``) returns them, ``process_batch`` (``process``, ``dgp-replay``,
+and the node for what the array path does not cover: the first message, ``sync``) checks
+message by message (``Intake.check``) and gives each accepted message the ``Estimate`` of its
+row. :func:`answers_of` turns such estimates back into one ``Answers`` (the node publishes
+Answers), :func:`last_estimate` the newest answer into an ``Estimate`` (diagnostics).
 """
 from __future__ import annotations
 

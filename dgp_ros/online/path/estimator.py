@@ -5,6 +5,9 @@ The online estimator's message path: validate, answer, hand over to the learner 
 the measured velocity from the newest learner snapshot; ``process_batch`` does the same for every
 message waiting at once, with one vectorized prediction, and ``process_arrays`` (``arrays``) for a
 batch of like messages given as arrays (the node's raw path), without an object per message.
+They differ only in how the messages are checked (one by one, or a batch at once: the same
+rules); every accepted message is answered and learned by one step, ``_respond``, so the node,
+``dgp-replay`` and the library answer alike by construction.
 The learner (``learner.Learner``) is where everything is learned; where it runs is
 ``refit_mode``:
 
@@ -200,7 +203,8 @@ class OnlineEstimator:
         the message (as in the node, whose learner takes a message after its answer): the
         accepted ones together (one vectorized prediction), then they are handed to the
         learner; in line (``sync``) one by one, so that each answer comes from the model that
-        learned every message before it. Returns one Estimate (or None) each.
+        learned every message before it. Returns one Estimate (or None) each: the rows of the
+        answers ``_respond`` gives (the node's, ``process_arrays``).
         """
         t0 = time.perf_counter()
         out: List[Optional[Estimate]] = [None] * len(messages)
@@ -213,38 +217,22 @@ class OnlineEstimator:
             groups = ([[a] for a in accepted] if self.config.refit_mode == 'sync'
                       else [accepted] if accepted else [])
             for group in groups:
-                Q = np.array([a[3] for a in group])
-                snap = self._learner.snapshot(self._want_stddev)
-                pred, part = self._estimate(snap, Q)
-                keep = []
-                for i, stamp, names, qd, tau, q in group:
-                    added, residuals = self._learner.learn(self.clock.time(stamp), qd, tau, q)
-                    keep.append((i, stamp, names, qd, tau, added, residuals))
-                if part is not None:
-                    self.stream.learn(np.array([a[1] for a in group], float), Q,
-                                      np.array([a[4] for a in group]), *part, pred[0],
-                                      self._lag(snap))
-                self._answer(keep, pred, out, t0)
+                q = None if group[0][5] is None else np.array([m[5] for m in group])
+                a, taken, learned, late = self._respond(
+                    tuple(self.intake.names or ()), np.array([m[0] for m in group]),
+                    np.array([m[1] for m in group], float), np.array([m[3] for m in group]),
+                    np.array([m[4] for m in group]), q, t0)
+                for j, (i, stamp, names, qd, tau, _) in enumerate(group):
+                    out[i] = Estimate(stamp, list(names) if names else [], qd, tau,
+                                      a.tau_hat[j], a.stddev[j],
+                                      None if a.D is None else a.D[j], float(a.power[j]),
+                                      float(a.measured_power[j]), a.source[j], taken[j],
+                                      a.processing_time_s, learned[j],
+                                      None if a.confidence is None else a.confidence[j])
+                if late:
+                    out[group[-1][0]].residuals = list(learned[-1]) + late
+                self._last_est = out[group[-1][0]]
         return out
-
-    def _answer(self, keep: list, pred: tuple, out: list, t0: float) -> None:
-        """Turn the predictions ``pred`` of the accepted messages ``keep`` into ``out``."""
-        tau_hat, std, D, source, conf = pred
-        residuals = self._learner.take_residuals() if keep else []
-        h = self.health
-        dt = time.perf_counter() - t0
-        for j, (i, stamp, names, qd, tau, added, res) in enumerate(keep):
-            power = float(qd @ tau_hat[j])
-            if self.config.passivity != 'none' and power < 0.0:
-                power = 0.0                 # rounding only (the gate replaced the others)
-            est = Estimate(stamp, list(names) if names else [], qd, tau, tau_hat[j], std[j],
-                           None if D is None else D[j], power, float(qd @ tau), source[j],
-                           added, dt, res, conf[j])
-            out[i] = est
-            h.latencies.append(dt)
-            self._last_est = est
-        if residuals and keep:
-            out[keep[-1][0]].residuals = list(out[keep[-1][0]].residuals) + residuals
 
     def _accept(self, stamp_s, names, velocity, effort, position):
         """Validate one message (counted); (stamp, names, qd, tau, q) or None if rejected."""
@@ -308,28 +296,42 @@ class OnlineEstimator:
                 return Answers(rows, joints, stamps[:0], e, e, None, e, e, None, np.zeros(0),
                                np.zeros(0), np.zeros(0, dtype=object),
                                time.perf_counter() - t0, [])
-            snap = self._learner.snapshot(self._want_stddev)
-            pred, part = self._estimate(snap, qd)
-            self._learner.learn_many(self.clock.times(stamps), qd, tau, q)
-            if part is not None:
-                self.stream.learn(np.asarray(stamps, float), qd, tau, *part, pred[0],
-                                  self._lag(snap))
-            return self._array_answers(joints, rows, stamps, qd, tau, q, pred, t0)
+            return self._respond(joints, rows, stamps, qd, tau, q, t0)[0]
 
-    def _array_answers(self, joints, rows, stamps, qd, tau, q, pred, t0) -> Answers:
+    # ------------------------------------------------------------------ answers
+    def _respond(self, joints: tuple, rows: np.ndarray, stamps: np.ndarray, qd: np.ndarray,
+                 tau: np.ndarray, q: Optional[np.ndarray], t0: float):
+        """
+        Answer k accepted messages and learn them: the one answer step of every entry point.
+
+        joints : the answers' joint names; rows : (k,) the messages' places in their batch;
+        stamps : (k,) [s]; qd, tau : (k, N) velocity [rad/s] and joint torque [N m] in the
+        joint order; q : (k, N) position [rad] or None; t0 : the batch's start
+        (``time.perf_counter``). The answers come from the snapshot taken *before* the messages
+        are learned (one vectorized prediction, ``_estimate``), then the learner takes them
+        (``learn_many``). Returns (``Answers``, the k ``learn`` flags, the k lists of residual
+        samples each completed, the residual samples the learner completed beyond those:
+        ``take_residuals``); ``Answers.residuals`` holds the k lists' and then the latter.
+        """
+        snap = self._learner.snapshot(self._want_stddev)
+        pred, part = self._estimate(snap, qd)
+        taken, learned = self._learner.learn_many(self.clock.times(stamps), qd, tau, q)
+        if part is not None:
+            self.stream.learn(stamps, qd, tau, *part, pred[0], self._lag(snap))
         tau_hat, std, D, source, conf = pred
-        # each as process_batch computes it (the same floats): one dot product per answer
+        # one dot product per answer (what a controller computes for one message)
         power = np.array([a @ b for a, b in zip(qd, tau_hat)])
         if self.config.passivity != 'none':
-            np.maximum(power, 0.0, out=power)      # rounding only (the gate replaced the others)
+            power[power < 0.0] = 0.0    # rounding only (the gate replaced the others)
         measured = np.array([a @ b for a, b in zip(qd, tau)])
-        residuals = self._learner.take_residuals()
+        late = self._learner.take_residuals()
+        residuals = [r for rs in learned for r in rs] + late
         dt = time.perf_counter() - t0
         a = Answers(rows, joints, stamps, qd, tau, q, tau_hat, std, D, power, measured, source,
                     dt, residuals, conf)
         self.health.latencies.extend([dt] * len(rows))
         self._last_est = a
-        return a
+        return a, taken, learned, late
 
     # ------------------------------------------------------------------ estimates
     def _estimate(self, snap: Optional[Snapshot], Q: np.ndarray):

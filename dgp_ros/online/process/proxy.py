@@ -280,17 +280,29 @@ class LearnerProcess:
             return False, []
         return True, []
 
-    def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray, q=None) -> int:
-        """``learn`` for k samples at once (t (k,), qd and tau (k, N)): one push; how many."""
-        if len(t) and self._N is None:              # the first sample makes the ring
+    def learn_many(self, t: np.ndarray, qd: np.ndarray, tau: np.ndarray,
+                   q=None) -> Tuple[list, list]:
+        """
+        ``learn`` for k samples at once (t (k,) [s], qd and tau (k, N), q (k, N) or None).
+
+        One push of the rows (``SampleRing.push_rows``: the same rows kept as k ``push``);
+        unlike ``learn`` also with learning off (the child counts them as not learned).
+        Returns (k flags: queued, a prefix; k empty lists, read-only: the child's residual
+        samples come back through ``take_residuals``).
+        """
+        k = len(t)
+        if k and self._N is None:                   # the first sample makes the ring
             n = int(self.learn(float(t[0]), qd[0], tau[0], None if q is None else q[0])[0])
-            return n + self.learn_many(t[1:], qd[1:], tau[1:], None if q is None else q[1:])
+            t, qd, tau, q = t[1:], qd[1:], tau[1:], None if q is None else q[1:]
+            taken = [bool(n)]
+        else:
+            taken = []
         rows = np.concatenate((t[:, None], qd, tau, np.full_like(qd, np.nan) if q is None else q),
                               axis=1)
         ring = self._ring
         kept = ring.push_rows(rows) if ring is not None and len(t) else 0
         self.samples_dropped += len(t) - kept
-        return kept
+        return taken + [True] * kept + [False] * (len(t) - kept), [[]] * k
 
     def snapshot(self, variance: bool = True):
         return self._snap
