@@ -19,7 +19,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
 
 import a320_family  # noqa: E402,I100
 
-#: flights of the family the suite flies (one: the ledger's tests fly four more approaches)
+#: flights of the family the suite flies (one: the ledger's tests fly two more approaches, and two
+#: more in the slow suite)
 SUITE_FLIGHTS = (12,)
 
 

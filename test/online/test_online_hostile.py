@@ -34,17 +34,24 @@ def feed(est, t0, t1, dt=0.01, seed=0):
 
 
 def test_one_in_range_outlier_does_not_freeze_learning():
+    """
+    One in-range spike does not freeze the learning.
+
+    20 s after the spike (it was 60 s, 10 CPU-s more): with the spike learned and a spread it
+    inflates (outlier() always False, robust_scale as mean and std) every assert below but the
+    last fails after 20 s (293 samples added, NMSE 0.093), where the code learns 1594, NMSE 6e-7.
+    """
     est = OnlineEstimator(cfg())
     feed(est, 0.0, 20.0)
     before = est.diagnostics()['samples_added']
     e = est.process(20.0, NAMES, [9999.0, 0.1, 0.1], [1.0, 1.0, 1.0])    # under the 1e4 limit
     assert e is not None and e.power >= 0
-    out = feed(est, 20.01, 80.0)
+    out = feed(est, 20.01, 40.0)
     d = est.diagnostics()
     assert d['samples_added'] > before + 500, d       # learning goes on (it froze before)
     assert d['samples_outliers'] >= 1 and 'stalled' not in d['message']
     # the model learned after the outlier predicts the motion: between the last samples
-    t = np.arange(79.005, 80.0, 0.01)
+    t = np.arange(39.005, 40.0, 0.01)
     Qs = np.stack([np.sin(t), np.cos(0.7 * t), 0.5 * np.sin(0.3 * t + 1)], axis=1)
     ref = np.array([truth(q) for q in Qs])
     assert np.mean((est.predict(Qs) - ref) ** 2) / np.var(ref) < 0.01
