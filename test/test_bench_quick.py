@@ -343,3 +343,7 @@ def test_coupled_wrist_quick(tmp_path):
     # of the per-joint fit here) and none where it is not
     assert rows[0][7] == '5+6' and max(numbers(rows[0][6])) < 0.5, rows[0]
     assert rows[1][7] == 'none', rows[1]
+    # the defaults serve that motor (0.028 / 0.026 of the per-joint fit here), and none without
+    assert 'transmission on panda_joint6+panda_joint7' in rows[0][9], rows[0]
+    assert max(numbers(rows[0][5])) < 0.5, rows[0]
+    assert 'transmission' not in rows[1][9], rows[1]
