@@ -33,6 +33,7 @@ import numpy as np
 
 from .means import mean_from_dict, PriorMean, register_mean
 from .policy import project_passive, projection_lambda
+from .prior_mean import OverDiagonalMean
 
 __all__ = ['CouplingBasis', 'CoupledMean', 'MAX_PAIRED', 'BOX_MARGIN']
 
@@ -181,7 +182,7 @@ def _widen(lo: np.ndarray, hi: np.ndarray):
 
 
 @register_mean
-class CoupledMean(PriorMean):
+class CoupledMean(OverDiagonalMean):
     """
     A diagonal passive prior plus the couplings of the persistent columns, projected (module doc).
 
@@ -190,27 +191,16 @@ class CoupledMean(PriorMean):
     """
 
     name = 'coupled'
-    is_diagonal = False
 
     def __init__(self, base: PriorMean, basis: CouplingBasis, W):
-        super().__init__(base.bias_enabled)
-        if not getattr(base, 'is_diagonal', True):
-            raise ValueError('coupled prior: its base must be a diagonal prior')
-        self.base = base
+        super().__init__(base, 'coupled prior')
         self.basis = basis
         self.W = np.asarray(W, float)
         if self.W.shape != (basis.N, basis.K):
             raise ValueError(f'coupled prior: W must be {(basis.N, basis.K)}, got {self.W.shape}')
-        self.bias = base.bias
         # a base without friction (an aircraft's family 'none'): its force is 0, not computed
         coef = getattr(base, 'coef', None)
         self._no_base = coef is not None and not np.any(coef)
-
-    def fit(self, Qd, Tau) -> 'CoupledMean':
-        """Keep everything (a frozen prior: the D-GP learns what it leaves); returns self."""
-        self.base.fit(Qd, Tau)
-        self.bias = self.base.bias
-        return self
 
     # ------------------------------------------------------------------ values
     def raw_force(self, Qd) -> np.ndarray:
@@ -284,15 +274,6 @@ class CoupledMean(PriorMean):
             Mlo[:, :, p] += plo
             Mhi[:, :, p] += phi
         return Mlo, Mhi
-
-    def diag_bounds(self, lo, hi):
-        Mlo, Mhi = self.matrix_bounds(lo, hi)
-        N = Mlo.shape[1]
-        return Mlo[:, np.arange(N), np.arange(N)], Mhi[:, np.arange(N), np.arange(N)]
-
-    def diag_inf(self):
-        """Return the base's infimum (a global certificate may not use it: ``is_diagonal``)."""
-        return np.asarray(self.base.diag_inf(), float)
 
     def diag_ref(self):
         """

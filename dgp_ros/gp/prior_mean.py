@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ['PriorMean']
+__all__ = ['PriorMean', 'OverDiagonalMean']
 
 
 class PriorMean:
@@ -80,3 +80,36 @@ class PriorMean:
 
     def _params(self) -> dict:  # pragma: no cover - abstract
         raise NotImplementedError
+
+
+class OverDiagonalMean(PriorMean):
+    """
+    A prior that adds a non-diagonal part to a fitted diagonal ``base``.
+
+    ``gp.coupled`` and ``gp.transmission``: frozen with its base, its diagonal's bounds read off
+    its ``matrix_bounds``, its infimum the base's. ``what`` names the prior in errors.
+    """
+
+    is_diagonal = False
+
+    def __init__(self, base: PriorMean, what: str):
+        super().__init__(base.bias_enabled)
+        if not getattr(base, 'is_diagonal', True):
+            raise ValueError(f'{what}: its base must be a diagonal prior')
+        self.base = base
+        self.bias = base.bias
+
+    def fit(self, Qd, Tau) -> 'OverDiagonalMean':
+        """Keep everything (a frozen prior: the D-GP learns what it leaves); returns self."""
+        self.base.fit(Qd, Tau)
+        self.bias = self.base.bias
+        return self
+
+    def diag_bounds(self, lo, hi):
+        Mlo, Mhi = self.matrix_bounds(lo, hi)
+        N = Mlo.shape[1]
+        return Mlo[:, np.arange(N), np.arange(N)], Mhi[:, np.arange(N), np.arange(N)]
+
+    def diag_inf(self):
+        """Return the base's infimum (a global certificate may not use it: ``is_diagonal``)."""
+        return np.asarray(self.base.diag_inf(), float)

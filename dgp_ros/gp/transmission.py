@@ -26,6 +26,7 @@ import numpy as np
 
 from .friction_means import _tanh_over
 from .means import mean_from_dict, PriorMean, register_mean
+from .prior_mean import OverDiagonalMean
 
 __all__ = ['TransmissionMean', 'motor_columns', 'EPS', 'FEATURES']
 
@@ -47,7 +48,7 @@ def _gain(a: np.ndarray, coef: np.ndarray) -> np.ndarray:
 
 
 @register_mean
-class TransmissionMean(PriorMean):
+class TransmissionMean(OverDiagonalMean):
     """
     A diagonal passive prior plus coupled transmissions (module docstring).
 
@@ -57,13 +58,9 @@ class TransmissionMean(PriorMean):
     """
 
     name = 'transmission'
-    is_diagonal = False
 
     def __init__(self, base: PriorMean, pairs: Sequence[Tuple[int, int, int]], coef):
-        super().__init__(base.bias_enabled)
-        if not getattr(base, 'is_diagonal', True):
-            raise ValueError('transmission prior: its base must be a diagonal prior')
-        self.base = base
+        super().__init__(base, 'transmission prior')
         self.pairs = tuple((int(a), int(b), int(s)) for a, b, s in pairs)
         self.coef = np.asarray(coef, float).reshape(len(self.pairs), FEATURES)
         if not self.pairs:
@@ -74,13 +71,6 @@ class TransmissionMean(PriorMean):
             if a == b or min(a, b) < 0 or s not in (1, -1):
                 raise ValueError(f'transmission prior: pair {(a, b, s)} is not two distinct '
                                  'joints and a sign +1 or -1')
-        self.bias = base.bias
-
-    def fit(self, Qd, Tau) -> 'TransmissionMean':
-        """Keep everything (a frozen prior: the D-GP learns what it leaves); returns self."""
-        self.base.fit(Qd, Tau)
-        self.bias = self.base.bias
-        return self
 
     def _check(self, N: int) -> None:
         if max(max(a, b) for a, b, _ in self.pairs) >= N:
@@ -149,15 +139,6 @@ class TransmissionMean(PriorMean):
                 Mlo[:, i, j] += olo
                 Mhi[:, i, j] += ohi
         return Mlo, Mhi
-
-    def diag_bounds(self, lo, hi):
-        Mlo, Mhi = self.matrix_bounds(lo, hi)
-        N = Mlo.shape[1]
-        return Mlo[:, np.arange(N), np.arange(N)], Mhi[:, np.arange(N), np.arange(N)]
-
-    def diag_inf(self):
-        """Return the base's infimum: each motor adds a PSD matrix, never less power."""
-        return np.asarray(self.base.diag_inf(), float)
 
     def diag_ref(self):
         """Return the base's typical ``m_d`` per joint (N,): the proofs' scale of the power."""
