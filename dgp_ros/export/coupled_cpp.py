@@ -17,7 +17,9 @@ its fallback and the gate, this prior's (force, matrix) enter instead, as in Pyt
   ``mean.force(qd)`` plus the correction;
 * ``blend`` (``gp.blend.blend``, non-diagonal branch): joint by joint toward
   ``prior_answer(mean, qd, a)`` (the force times the gains, projected; its matrix row-scaled
-  plus that projection's ``lam I``), then the blend projected onto ``qd . tau >= 0``;
+  plus that projection's ``lam I``), then the blend projected onto ``qd . tau >= 0``; a
+  transmission prior (``psd``: its diagonal plus a PSD part) takes the gains as the congruence
+  ``R M R`` and, under a ``psd`` certificate, the blend ``S D S + R' Mp R'`` (no projection);
 * the gate (``online/path/gate.py``): the fallback ``prior_answer(mean, qd, gain)``, and the
   prior's force at the query clipped into the learned box raising the limit.
 
@@ -76,6 +78,10 @@ inline void project_unit(const double* q, double* t) noexcept {
     for (std::size_t i = 0; i < N; ++i) t[i] += k * q[i];
   }
 }
+"""
+
+#: ``prior_answer``'s gains on a coupled prior's (M, f): row by row, then projected
+_GAIN_ROWS = r"""
 inline void gain_prior(const double* q, const double* a, double* M, double* f) noexcept {
   for (std::size_t i = 0; i < N; ++i) f[i] = f[i] * a[i];
   const double lam = lambda_unit(q, f);
@@ -83,6 +89,22 @@ inline void gain_prior(const double* q, const double* a, double* M, double* f) n
   for (std::size_t i = 0; i < N; ++i) {
     for (std::size_t j = 0; j < N; ++j) M[i * N + j] *= a[i];
     M[i * N + i] += lam;
+  }
+}
+"""
+
+#: ... and on a transmission prior's (diagonal plus PSD): the congruence R M R, R = diag(sqrt a)
+_GAIN_CONGRUENCE = r"""
+inline void gain_prior(const double* q, const double* a, double* M, double* f) noexcept {
+  double r[N];
+  for (std::size_t i = 0; i < N; ++i) r[i] = std::sqrt(a[i]);
+  for (std::size_t i = 0; i < N; ++i) {
+    double t = 0.0;
+    for (std::size_t j = 0; j < N; ++j) {
+      M[i * N + j] *= r[i] * r[j];
+      t += M[i * N + j] * q[j];
+    }
+    f[i] = t;
   }
 }
 """
@@ -180,7 +202,8 @@ def coupled_code(spec: Spec) -> str:
               '      for (std::size_t i = 0; i < N; ++i) M[i * N + i] += lam;', '  }',
               '  for (std::size_t i = 0; i < N; ++i) f[i] = md[i] * qd[i] + cp[i];',
               '  project_unit(qd, f);', '}']
-    return out + _UNIT + '\n'.join(lines) + '\n'
+    gains = _GAIN_CONGRUENCE if cpl.get('psd') else _GAIN_ROWS
+    return out + _UNIT + gains + '\n'.join(lines) + '\n'
 
 
 def coupled_blend_code(spec: Spec) -> str:
@@ -192,6 +215,20 @@ def coupled_blend_code(spec: Spec) -> str:
     ``D = w D + (1 - w) Mp`` row by row, projected (``lam`` on D's diagonal).
     """
     w, a = spec.grounds
+    if spec.prior['coupled'].get('psd') and spec.per_joint:
+        # the congruence S D S + R Mp R (``blend``'s branch for a prior diagonal plus PSD)
+        s, r = np.sqrt(w), np.sqrt((1.0 - w) * a)
+        return (const('BS', s[:, None] * s[None, :]) + const('BR', r[:, None] * r[None, :]) +
+                'inline void blend(const double* qd, double* Mp, double* fp, double* tau, '
+                'double* D) noexcept {\n'
+                '  (void)fp;\n'
+                '  for (std::size_t i = 0; i < N; ++i)\n'
+                '    for (std::size_t j = 0; j < N; ++j)\n'
+                '      D[i * N + j] = D[i * N + j] * BS[i][j] + Mp[i * N + j] * BR[i][j];\n'
+                '  for (std::size_t i = 0; i < N; ++i) {\n'
+                '    double t = 0.0;\n'
+                '    for (std::size_t j = 0; j < N; ++j) t += D[i * N + j] * qd[j];\n'
+                '    tau[i] = t;\n  }\n}\n')
     return (const('BA', a) + const('BW', w) + const('BV', 1.0 - w) +
             'inline void blend(const double* qd, double* Mp, double* fp, double* tau, double* D)'
             ' noexcept {\n'

@@ -145,7 +145,9 @@ def _prior(mean, N: int) -> dict:
     if isinstance(mean, TransmissionMean):
         # a non-diagonal prior in the coupled form: no persistent column, a motor per pair
         out = _prior(mean.base, N)
+        # (``psd``: the diagonal plus a PSD part, gains and blend by congruence)
         out['coupled'] = {'box': None, 'columns': [], 'eps': float(TRANSMISSION_EPS),
+                          'psd': True,
                           'motors': [(a, b, s, float(c[0]), float(c[1]))
                                      for (a, b, s), c in zip(mean.pairs, mean.coef)]}
         return out

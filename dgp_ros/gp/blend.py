@@ -9,7 +9,9 @@ its weight, toward what had.
 
 With ``S = diag(sqrt(w))`` and ``F = diag((1 - w) a m_d(qd))`` the blended damping matrix is
 ``D' = S D S + F``. Where ``D``'s symmetric part is positive semi-definite (guarantee ``psd``)
-so is ``D'`` (a congruence plus a non-negative diagonal); a diagonal ``D`` blends joint by joint,
+so is ``D'`` (a congruence plus a non-negative diagonal; over a prior that is its diagonal plus a
+PSD part, a transmission, ``F = R M R`` with ``R = diag(sqrt((1 - w) a))``, PSD as well); a
+diagonal ``D`` blends joint by joint,
 ``tau'_j = w_j tau_j + (1 - w_j) a_j p_j``. Under the other guarantees (a domain proof, a
 projection: they hold for ``q^T D(q) q`` only) one scalar ``w = min_j w_j`` blends
 ``D' = w D + (1 - w) diag(a m_d)``: a convex combination of two passive answers.
@@ -30,9 +32,11 @@ def prior_answer(mean, Q: np.ndarray, a: Optional[np.ndarray] = None, want_D: bo
     """
     Return (tau (k, N), D (k, N, N) or None): the fallback, the prior ``mean`` times its gains.
 
-    a : (N,) gains in [0, 1] (None: 1). A diagonal prior gives ``diag(a m_d(Q)) Q``; a coupled
-    one (``gp.coupled``) ``a * force`` row by row, projected onto ``q^T tau >= 0`` where the
-    gains made it non-passive (its matrix gets the projection's ``lam I``): passive either way.
+    a : (N,) gains in [0, 1] (None: 1). A diagonal prior gives ``diag(a m_d(Q)) Q``; one that is
+    its diagonal plus a PSD part (a transmission, ``psd_over_diagonal``) the congruence
+    ``R M(Q) R Q``, ``R = diag(sqrt(a))`` (the same where M is diagonal; PSD either way); a
+    coupled one (``gp.coupled``) ``a * force`` row by row, projected onto ``q^T tau >= 0`` where
+    the gains made it non-passive (its matrix gets the projection's ``lam I``): passive always.
     """
     Q = np.asarray(Q, float)
     if mean.is_diagonal:
@@ -44,6 +48,13 @@ def prior_answer(mean, Q: np.ndarray, a: Optional[np.ndarray] = None, want_D: bo
             D = np.zeros(d.shape + (d.shape[-1],))
             D[:, np.arange(d.shape[-1]), np.arange(d.shape[-1])] = d
         return d * Q, D
+    if mean.psd_over_diagonal:
+        if a is None:
+            return np.asarray(mean.force(Q), float), \
+                (np.asarray(mean.matrix(Q), float) if want_D else None)
+        r = np.sqrt(a)
+        D = np.asarray(mean.matrix(Q), float) * (r[:, None] * r[None, :])
+        return np.einsum('kij,kj->ki', D, Q), (D if want_D else None)
     from .policy import project_passive, projection_lambda
     tau = np.asarray(mean.force(Q), float)
     D = np.asarray(mean.matrix(Q), float) if want_D else None
@@ -59,7 +70,7 @@ def prior_answer(mean, Q: np.ndarray, a: Optional[np.ndarray] = None, want_D: bo
 
 def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], mean,
           w: np.ndarray, a: np.ndarray, per_joint: bool,
-          prior_diag: Optional[np.ndarray] = None):
+          prior_diag: Optional[np.ndarray] = None, prior_matrix: Optional[np.ndarray] = None):
     """
     Blend answers toward the fallback (module docstring).
 
@@ -68,9 +79,16 @@ def blend(Q: np.ndarray, tau: np.ndarray, D: Optional[np.ndarray], mean,
     model's weight and the prior's gain. ``per_joint``: the congruence blend (keeps a PSD
     symmetric part; a diagonal prior only), else one scalar ``min(w)`` per answer (keeps
     ``q^T tau >= 0`` of a passive answer). ``prior_diag`` : (k, N) ``mean.diag(Q)`` where the
-    caller has it already (a diagonal prior; the message path computes it once per answer).
+    caller has it already (a diagonal prior; the message path computes it once per answer);
+    ``prior_matrix`` : (k, N, N) ``mean.matrix(Q)`` likewise (a diagonal-plus-PSD prior).
     Returns (tau', D' or None).
     """
+    if not mean.is_diagonal and per_joint and D is not None and mean.psd_over_diagonal:
+        # the congruence with the prior's whole matrix: S D S + R M R, R = diag(sqrt((1-w) a))
+        s, r = np.sqrt(w), np.sqrt((1.0 - w) * a)
+        M = np.asarray(mean.matrix(Q) if prior_matrix is None else prior_matrix, float)
+        Db = D * (s[:, None] * s[None, :]) + M * (r[:, None] * r[None, :])
+        return np.einsum('kij,kj->ki', Db, Q), Db
     if not mean.is_diagonal:
         # joint by joint, then projected: a coupled prior carries whole forces (an aircraft's
         # lift), and one scalar min(w) let a side force's weight of 0.1 pull the lift's answer

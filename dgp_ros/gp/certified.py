@@ -5,7 +5,9 @@ In order (docs/PASSIVITY.md):
 
 1. ``a-posteriori-bound`` (any N, global, PSD): with the weights known, ``|C_mn(q)| <= B_mn`` for
    every q (``bounds.l1_bound``); ``diag(m_inf) - B`` copositive proves that the symmetric
-   part of ``D(q)`` is PSD for every q in R^N. Nothing is changed.
+   part of ``D(q)`` is PSD for every q in R^N. Nothing is changed. It holds over a prior that
+   is its diagonal plus a PSD part (``PriorMean.psd_over_diagonal``: a transmission's motors)
+   as over a diagonal one; not over ``gp.coupled``'s.
 2. Up to ``JOINT_MAX_N`` velocities, ``domain-bnb+blend`` (passive on a domain): branch-and-bound
    (``verify.verify_box``) proves ``q^T D(q) q >= 0`` on an outer box ``Omega'`` around the data
    (and a declared operating domain). Counterexamples are repaired *locally* first: the least
@@ -168,8 +170,8 @@ class CertifiedPolicy(PassivityPolicy):
 
     def _global(self, post, rkhs: bool) -> bool:
         """Certificate (1); True when it holds (then nothing is blended or clipped)."""
-        if not post.mean.is_diagonal:
-            return False            # the lemma needs a diagonal prior (``gp.coupled``: none)
+        if not post.mean.psd_over_diagonal:
+            return False            # the lemma needs diag(m_inf) under M (``gp.coupled``: none)
         m = norm_margin(post.mean.diag_inf(), self.scale * l1_bound(post, rkhs=rkhs))
         if m < 0:
             return False

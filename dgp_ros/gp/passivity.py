@@ -51,7 +51,7 @@ class NonePolicy(PassivityPolicy):
             self.cert = Certificate(False, -np.inf, 'none', None, 1.0,
                                     {'note': 'ARD-GP has no damping structure'})
             return post
-        if not post.mean.is_diagonal:
+        if not post.mean.psd_over_diagonal:
             self.cert = Certificate(False, -np.inf, 'none', None, 1.0,
                                     {'note': 'the prior carries couplings: no global bound'})
             return post

@@ -21,6 +21,11 @@ class PriorMean:
     #: the damping matrix is ``diag(m_d(qd))`` (every mean here; not ``gp.coupled``'s): what
     #: the global certificates (``diag(m_inf) - B`` copositive) need
     is_diagonal = True
+    #: the symmetric part of ``M(qd) - diag(base m_d(qd))`` is positive semi-definite for every
+    #: qd (a diagonal prior: nothing beyond it; ``gp.transmission``: its motors), so
+    #: ``qd^T M qd >= sum_i diag_inf()_i qd_i^2``: the global certificates hold with
+    #: ``diag_inf`` and the earned-gain blend may be the congruence ``S D S + R M R``
+    psd_over_diagonal = True
 
     def __init__(self, bias: bool = False):
         self.bias_enabled = bool(bias)
@@ -91,6 +96,7 @@ class OverDiagonalMean(PriorMean):
     """
 
     is_diagonal = False
+    psd_over_diagonal = False       # a subclass whose addition is PSD says so
 
     def __init__(self, base: PriorMean, what: str):
         super().__init__(base.bias_enabled)
@@ -111,5 +117,5 @@ class OverDiagonalMean(PriorMean):
         return Mlo[:, np.arange(N), np.arange(N)], Mhi[:, np.arange(N), np.arange(N)]
 
     def diag_inf(self):
-        """Return the base's infimum (a global certificate may not use it: ``is_diagonal``)."""
+        """Return the base's infimum (a global certificate needs ``psd_over_diagonal``)."""
         return np.asarray(self.base.diag_inf(), float)

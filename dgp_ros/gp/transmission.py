@@ -13,8 +13,11 @@ to the damping force, i.e. ``g(m) t t^T`` to the damping matrix with ``t = e_a +
 
 **Passivity.** ``qd^T g(m) t t^T qd = g(m) m^2 >= 0``: each pair adds a positive semi-definite
 matrix, so the prior stays passive at every velocity, inside and outside the data, without a
-projection. Its matrix is not diagonal (``is_diagonal`` False), so the global certificates that
-need ``diag(m_inf) - B`` copositive do not apply and answers are kept passive pointwise.
+projection. Its matrix is not diagonal (``is_diagonal`` False) but the base's diagonal plus a
+positive semi-definite part (``psd_over_diagonal``): ``qd^T M qd >= sum_i m_inf,i qd_i^2`` with
+the base's infimum, so the global certificate (``diag(m_inf) - B`` copositive) proves the
+posterior's symmetric part PSD as it does over a diagonal prior, and the earned-gain blend is the
+congruence ``S D S + R M R`` (``gp.blend``).
 
 Velocities ``Qd`` (k, N) [rad/s on an arm], forces (k, N) [N m]. Pure numpy; no rclpy.
 """
@@ -58,6 +61,7 @@ class TransmissionMean(OverDiagonalMean):
     """
 
     name = 'transmission'
+    psd_over_diagonal = True
 
     def __init__(self, base: PriorMean, pairs: Sequence[Tuple[int, int, int]], coef):
         super().__init__(base, 'transmission prior')
@@ -71,45 +75,58 @@ class TransmissionMean(OverDiagonalMean):
             if a == b or min(a, b) < 0 or s not in (1, -1):
                 raise ValueError(f'transmission prior: pair {(a, b, s)} is not two distinct '
                                  'joints and a sign +1 or -1')
+        # every motor at once (the message path answers one velocity at a time): its joints,
+        # sign, the direction t = e_a + s e_b as a row of T (P, N) and t t^T's entries
+        self._a = np.array([a for a, _, _ in self.pairs], dtype=np.intp)
+        self._b = np.array([b for _, b, _ in self.pairs], dtype=np.intp)
+        self._s = np.array([s for _, _, s in self.pairs], dtype=float)
+        self._top = int(max(max(a, b) for a, b, _ in self.pairs))
+        self._T = {}                # N -> (T (P, N), T * T (P, N), t t^T (P, N, N))
 
     def _check(self, N: int) -> None:
-        if max(max(a, b) for a, b, _ in self.pairs) >= N:
+        if self._top >= N:
             raise ValueError(f'transmission prior: a pair names a joint beyond the {N} given')
+
+    def _directions(self, N: int):
+        """Return (T (P, N), T**2 (P, N), t t^T (P, N, N)) of the motors for N joints (cached)."""
+        out = self._T.get(N)
+        if out is None:
+            self._check(N)
+            T = np.zeros((len(self.pairs), N))
+            T[np.arange(len(self.pairs)), self._a] = 1.0
+            T[np.arange(len(self.pairs)), self._b] = self._s
+            out = self._T[N] = (T, T * T, T[:, :, None] * T[:, None, :])
+        return out
+
+    def _speeds(self, Qd: np.ndarray) -> np.ndarray:
+        """Return the motor speeds ``m = qd_a + s qd_b`` (k, P)."""
+        return Qd[:, self._a] + self._s * Qd[:, self._b]
 
     # ------------------------------------------------------------------ values
     def force(self, Qd) -> np.ndarray:
         """Return ``diag(m_d) qd`` plus each motor's ``f(m) t`` (k, N)."""
         Qd = np.atleast_2d(np.asarray(Qd, float))
-        self._check(Qd.shape[1])
-        out = np.array(self.base.force(Qd), float)
-        for (a, b, s), c in zip(self.pairs, self.coef):
-            f = motor_columns(Qd[:, a] + s * Qd[:, b]) @ c
-            out[:, a] += f
-            out[:, b] += s * f
-        return out
+        T = self._directions(Qd.shape[1])[0]
+        m = self._speeds(Qd)
+        f = self.coef[:, 0] * np.tanh(m / EPS) + self.coef[:, 1] * m        # (k, P)
+        return np.asarray(self.base.force(Qd), float) + f @ T
+
+    def _gains(self, Qd: np.ndarray) -> np.ndarray:
+        """``g(m) = f(m) / m`` of every motor (k, P)."""
+        return self.coef[:, 0] * _tanh_over(self._speeds(Qd), np.float64(EPS)) + self.coef[:, 1]
 
     def matrix(self, Qd) -> np.ndarray:
         """Return ``diag(m_d(qd)) + sum g(m) t t^T`` (k, N, N); ``force = matrix @ qd``."""
         Qd = np.atleast_2d(np.asarray(Qd, float))
-        self._check(Qd.shape[1])
-        M = self.base.matrix(Qd)
-        for (a, b, s), c in zip(self.pairs, self.coef):
-            g = _gain(np.abs(Qd[:, a] + s * Qd[:, b]), c)
-            M[:, a, a] += g
-            M[:, b, b] += g
-            M[:, a, b] += s * g
-            M[:, b, a] += s * g
-        return M
+        tt = self._directions(Qd.shape[1])[2]
+        M = np.array(self.base.matrix(Qd), float)
+        return M + np.einsum('kp,pij->kij', self._gains(Qd), tt)
 
     def diag(self, Qd) -> np.ndarray:
         """Return the diagonal of :meth:`matrix` (k, N); the force is not ``diag * qd`` here."""
         Qd = np.atleast_2d(np.asarray(Qd, float))
-        d = np.array(self.base.diag(Qd), float)
-        for (a, b, s), c in zip(self.pairs, self.coef):
-            g = _gain(np.abs(Qd[:, a] + s * Qd[:, b]), c)
-            d[:, a] += g
-            d[:, b] += g
-        return d
+        T2 = self._directions(Qd.shape[1])[1]
+        return np.asarray(self.base.diag(Qd), float) + self._gains(Qd) @ T2
 
     # ------------------------------------------------------------------ bounds
     def _gain_bounds(self, lo, hi, pair, c):

@@ -244,6 +244,9 @@ def test_guarantees_as_proven(built):
     motors = built['transmission'][0].prior['coupled']['motors']
     assert [m[:3] for m in motors] == [(5, 6, 1), (2, 3, -1)]
     assert list(built['transmission'][0].prior['element']['joints']) == [0, 2, 5]
+    # diagonal plus PSD: its gains and blend are the congruence (coupled_cpp), under 'psd'
+    spec = built['transmission'][0]
+    assert spec.prior['coupled']['psd'] and spec.guarantee == 'psd' and spec.per_joint
 
 
 @pytest.mark.parametrize('name', ['full_arm', 'diag_arm', 'a320', 'element_arm', 'asym_arm',

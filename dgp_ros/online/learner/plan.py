@@ -110,17 +110,21 @@ class AnswerPlan:
         G[:, self.rows, self.cols] = Gf
         return G
 
-    def answers(self, Q: np.ndarray, want_D: bool, prior_diag: Optional[np.ndarray] = None):
+    def answers(self, Q: np.ndarray, want_D: bool, prior_diag: Optional[np.ndarray] = None,
+                prior_matrix: Optional[np.ndarray] = None):
         """
         Return (tau (k, N), D (k, N, N) or None) at velocities Q, as the model answers them.
 
         ``model.predict_with_damping(Q, False, want_D)`` up to rounding. ``prior_diag`` : (k, N)
-        the diagonal prior's ``diag(Q)`` where the caller has it already (the gate's blend
-        needs it too), else computed here.
+        the diagonal prior's ``diag(Q)``, ``prior_matrix`` : (k, N, N) a non-diagonal prior's
+        ``matrix(Q)``, where the caller has it already (the gate's blend needs it too), else
+        computed here.
         """
         if Q.shape[0] > CHUNK:
-            dg = prior_diag
-            parts = [self.answers(Q[i:i + CHUNK], want_D, None if dg is None else dg[i:i + CHUNK])
+            dg, pm = prior_diag, prior_matrix
+            parts = [self.answers(Q[i:i + CHUNK], want_D,
+                                  None if dg is None else dg[i:i + CHUNK],
+                                  None if pm is None else pm[i:i + CHUNK])
                      for i in range(0, Q.shape[0], CHUNK)]
             D = None if parts[0][1] is None else np.concatenate([d for _, d in parts])
             return np.concatenate([t for t, _ in parts]), D
@@ -137,14 +141,19 @@ class AnswerPlan:
                 dg = self.mean.diag(Q) if prior_diag is None else prior_diag
                 D.reshape(len(D), self.N * self.N)[:, ::self.N + 1] += dg     # the diagonal
             else:
-                D = D + self.mean.matrix(Q)
+                D = D + (self.mean.matrix(Q) if prior_matrix is None else prior_matrix)
         if D is not None and pol.needs_damping:
             tau = np.einsum('kij,kj->ki', D, Q)
         else:
             corr = G[:, :, 0] if self.kind == 'ard' else np.einsum('kmn,kn->km', G, X)
             if w is not None:
                 corr *= w[:, None]
-            prior = dg * Q if need_D and self.force_is_diag else self.mean.force(Q)
+            if need_D and self.force_is_diag:
+                prior = dg * Q
+            elif prior_matrix is not None:      # the caller's matrix: its force, to rounding
+                prior = np.einsum('kij,kj->ki', prior_matrix, Q)
+            else:
+                prior = self.mean.force(Q)
             tau = prior + corr * self.sy
         tau, D = pol.finalize(self.post, Q, tau, D)
         return tau, D if want_D else None

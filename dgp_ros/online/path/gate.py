@@ -92,11 +92,16 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
         per_joint = mix and snap.per_joint
         try:
             plan = None if want_stddev or plans is None else plans.get(snap.model)
-            # the blend's prior is the plan's mean (the learner's): its diagonal computed once
-            dg = np.asarray(snap.prior.diag(Q), float) if mix and plan is not None and \
-                plan.mean is snap.prior and snap.prior.is_diagonal else None
+            # the blend's prior is the plan's mean (the learner's): its diagonal, or the matrix
+            # of a diagonal-plus-PSD one (the congruence blend), computed once
+            dg = pm = None
+            if mix and plan is not None and plan.mean is snap.prior:
+                if snap.prior.is_diagonal:
+                    dg = np.asarray(snap.prior.diag(Q), float)
+                elif per_joint and snap.prior.psd_over_diagonal:
+                    pm = np.asarray(snap.prior.matrix(Q), float)
             if plan is not None:
-                (tau, D), var = plan.answers(Q, want_damping or per_joint, dg), None
+                (tau, D), var = plan.answers(Q, want_damping or per_joint, dg, pm), None
             else:
                 tau, var, D = snap.model.predict_with_damping(Q, want_stddev,
                                                               want_damping or per_joint)
@@ -105,7 +110,7 @@ def answer(snap: Optional[Snapshot], Q: np.ndarray, want_stddev: bool, want_damp
             source[:] = 'model'
             conf[:] = 1.0 if snap.confidence is None else snap.confidence
             if mix:
-                tau, D = blend(Q, tau, D, snap.prior, w, snap.prior_gain, per_joint, dg)
+                tau, D = blend(Q, tau, D, snap.prior, w, snap.prior_gain, per_joint, dg, pm)
                 if not want_damping:
                     D = None
         except Exception as exc:        # noqa: BLE001 - the answer falls back to the prior
@@ -276,15 +281,16 @@ def guarantee(snap: Optional[Snapshot], passivity: str) -> str:
     Return the guarantee the answers from ``snap`` are served under (``gp.GUARANTEES`` key).
 
     The served model's certificate as it is (a record, read at no cost); before the first fit
-    the prior's: ``diag(m_d)``, ``m_d >= 0``: 'psd' (as the learner's status says); a prior with
-    couplings (``gp.coupled``) is passive by its projection: 'pointwise'.
+    the prior's: ``diag(m_d)``, ``m_d >= 0``, or that plus a PSD part (a transmission): 'psd' (as
+    the learner's status says); a prior with couplings (``gp.coupled``) is passive by its
+    projection: 'pointwise'.
     """
     if passivity == 'none':
         return 'none'
     model = None if snap is None else snap.model
     if model is None:
         prior = None if snap is None else snap.prior
-        return 'psd' if prior is None or prior.is_diagonal else 'pointwise'
+        return 'psd' if prior is None or prior.psd_over_diagonal else 'pointwise'
     try:
         return str(model.certificate().guarantee)
     except Exception:       # noqa: BLE001 - an unfitted model: its answers fall back to the prior
