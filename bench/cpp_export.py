@@ -19,7 +19,9 @@ example-robot-data's panda; the node's defaults keep none of its 49 elements of 
 also exported with ``elements=all``, the paper's Full-D, all 49), the real UR10
 (``../shared/data/ur10_real``, t < 10 s, ``python:ur10_rb:tau_rb``: an element of D from every
 sample on its wrist 3) and the robot demo's simulated Panda after 8 task cycles (80 s: elements
-from every sample on several joints, ``gp.joint_element``); a real log that is absent
+from every sample on several joints, ``gp.joint_element``) and with a wrist motor driving its
+last two joints (24 s, ``coupled_wrist=0.6``: a coupled transmission, ``gp.transmission``,
+served by the defaults); a real log that is absent
 is replaced by the simulated Panda of the robot demo (said in the table). Time per
 ``friction()`` call: the example program (``examples/cpp/friction_along_log.cpp``) on 2000
 samples of the model's own velocities, at ``-O2`` and ``-O2 -march=native`` with g++ (and
@@ -65,12 +67,16 @@ def _stream(est, t, names, qd, tau, q=None, bag=False):
         est.process(s, names, qd[i], tau[i], None if q is None else q[i])
 
 
-def _sim_panda(seconds: float):
-    """Learn ``seconds`` of the robot demo's Panda in line; (the estimator, the run)."""
+def _sim_panda(seconds: float, coupled: float = 0.0):
+    """
+    Learn ``seconds`` of the robot demo's Panda in line; (the estimator, the run).
+
+    ``coupled`` : the Coulomb level [N m] of a motor driving its last two joints (0: none).
+    """
     from dgp_ros.dynamics import example_robot_urdf
     from dgp_ros.dynamics.arm_stream import demo_arm
     from dgp_ros.online import EstimatorConfig, OnlineEstimator
-    s = demo_arm('panda', seconds, seed=0)
+    s = demo_arm('panda', seconds, seed=0, coupled_wrist=coupled)
     names = list(s['names'])
     est = OnlineEstimator(EstimatorConfig(refit_mode='sync', inverse_dynamics='urdf',
                                           joints=names, urdf_file=example_robot_urdf('panda')))
@@ -94,6 +100,12 @@ def learn(case: str, path: str, quick: bool) -> str:
         est, s = _sim_panda(80.0)
         on = (est.diagnostics().get('joint_elements') or {}).get('on', [])
         label = f'simulated Panda, 8 task cycles (elements from every sample on joints {on})'
+    elif case == 'motor':
+        # a wrist whose motor drives the last two joints (bench/coupled_wrist.py): the
+        # defaults serve the transmission
+        est, s = _sim_panda(24.0, coupled=0.6)
+        label = (f'simulated Panda with a wrist motor, 24 s '
+                 f'({est.diagnostics().get("structure")})')
     else:
         extra = {'elements': 'all'} if case.endswith('_full') else {}
         case = case.split('_')[0]
@@ -175,6 +187,20 @@ def python_call_us(model, rng) -> float:
     return 1e6 * float(np.median(t))
 
 
+def _power(Qd, tau):
+    """
+    ``qd . tau`` per answer (k,), summed joint after joint as the header sums it.
+
+    A projected answer (a coupled prior's) lies on ``qd . tau = 0``: the sign of its computed
+    power is the order of the sum (numpy's einsum gave -1e-17 relative on the A320 where the
+    header's order gives 0; ``test/export/test_export_cpp.py`` sums so too).
+    """
+    p = Qd[:, 0] * tau[:, 0]
+    for i in range(1, Qd.shape[1]):
+        p = p + Qd[:, i] * tau[:, i]
+    return p
+
+
 def run_case(case, quick, d):
     from dgp_ros.export import header_spec, write_header
     from dgp_ros.export.toolchain import driver, evaluate, find_compiler
@@ -210,8 +236,8 @@ def run_case(case, quick, d):
         same = np.all(out['damping'] == out['damping'], axis=1) & \
             np.all(np.abs(out['damping'] - out['model_damping']) == 0, axis=1)
         r[f'{side}_py'] = rel(model.predict(Qd[same]), tau[same]) if same.any() else 0.0
-        r[f'{side}_negative'] = int((np.einsum('ij,ij->i', Qd, out['damping']) < 0).sum() +
-                                    (np.einsum('ij,ij->i', Qd, out['model_damping']) < 0).sum())
+        r[f'{side}_negative'] = int((_power(Qd, out['damping']) < 0).sum() +
+                                    (_power(Qd, out['model_damping']) < 0).sum())
         moved = np.abs(out['damping'] - out['model_damping']) > 0
         r[f'{side}_bounded'] = int(moved.any(axis=1).sum())
         r['node_guarantee'] = g
@@ -265,7 +291,7 @@ def main(argv=None) -> int:
     res = []
     with tempfile.TemporaryDirectory() as d:
         cases = ('a320', 'panda') if a.quick else (
-            'a320', 'panda', 'panda_full', 'ur10', 'simpanda')
+            'a320', 'panda', 'panda_full', 'ur10', 'simpanda', 'motor')
         for case in cases:
             res.append(run_case(case, a.quick, d))
     C.write_section(a.out, NAME, report(a, res, time.perf_counter() - t0))
