@@ -69,17 +69,18 @@ class JointChoice:
         return forward | ((across[0] < (1.0 - JOINT_OFFSET_MARGIN) * across[1]) &
                           (with_ <= (1.0 + 1e-9) * without))
 
-    def _across(self, *cands) -> Optional[List[np.ndarray]]:
+    def _across(self, *cands, grams: Optional[list] = None) -> Optional[List[np.ndarray]]:
         """
         Return each candidate's squared error per joint across the halves of the run, (N,).
 
         Fitted on each half and scored on the other; None while a half holds fewer than
-        ``MIN_HALF_SAMPLES`` samples.
+        ``MIN_HALF_SAMPLES`` samples. ``grams``: the halves' ``_global`` where the caller scores
+        many candidates (built here otherwise).
         """
         halves = self.element.halves
         if min(h.n for h in halves) < MIN_HALF_SAMPLES:
             return None
-        G = [self._global(h) for h in halves]
+        G = [self._global(h) for h in halves] if grams is None else grams
         out = []
         for cand in cands:
             m = self._mask(*cand)
@@ -143,17 +144,22 @@ class JointChoice:
         if not self.TC or not folds or min(h.n for h in halves) < MIN_HALF_SAMPLES:
             return ()
 
-        def errors(motors):
+        grams = [self._global(h) for h in halves]       # once for every candidate
+
+        def newest(motors):
             m = self._mask(*best[:4], motors)
-            fwd = sum(self._sse(test, self._solve(G, b, m, n)) for (G, b), n, test in folds)
-            return fwd, self._across(best[:4] + (motors,))[0]
-        base = errors(())
+            return sum(self._sse(test, self._solve(G, b, m, n)) for (G, b), n, test in folds)
+
+        def across(motors):
+            return self._across(best[:4] + (motors,), grams=grams)[0]
+        scores = [(newest, newest(())), (across, across(()))]
         wins = []
         for a in range(self.N - 1):
             pair = [a, a + 1]
             for s in (1, -1):
                 ratio = 0.0
-                for e, e0 in zip(errors(((a, s),)), base):
+                for score, e0 in scores:         # the halves only where the newest blocks win
+                    e = score(((a, s),))
                     if not (e[pair].sum() < (1.0 - MOTOR_MARGIN) * e0[pair].sum() and
                             np.all(e[pair] <= e0[pair])):
                         break
